@@ -1,0 +1,305 @@
+"""Sequential latent variable model of (DS-)SLAC: encoder, decoder, latent dynamics, reward and cost decoders."""
+
+import itertools
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+_LOG_COST_EPS = math.log(1e-6)
+
+
+def init_weights(module: nn.Module) -> None:
+    """Xavier-uniform (gain 1) weights and zero biases for every linear and (transposed) convolution layer."""
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear | nn.Conv2d | nn.ConvTranspose2d):
+            nn.init.xavier_uniform_(layer.weight, gain=1.0)
+            if layer.bias is not None:
+                nn.init.zeros_(layer.bias)
+
+
+def build_mlp(
+    input_dim: int,
+    output_dim: int,
+    hidden_units: tuple[int, ...],
+    activation: Callable[[], nn.Module],
+    output_activation: Callable[[], nn.Module] | None = None,
+) -> nn.Sequential:
+    """
+    Multi-layer perceptron ``input_dim -> *hidden_units -> output_dim``.
+
+    :param activation: factory of the hidden activation module
+    :param output_activation: factory of the activation applied to the output, or None for a linear output
+    """
+    layers: list[nn.Module] = []
+    in_dim = input_dim
+    for units in hidden_units:
+        layers += [nn.Linear(in_dim, units), activation()]
+        in_dim = units
+    layers.append(nn.Linear(in_dim, output_dim))
+    if output_activation is not None:
+        layers.append(output_activation())
+    return nn.Sequential(*layers)
+
+
+def gaussian_kl(mean_q: Tensor, std_q: Tensor, mean_p: Tensor, std_p: Tensor) -> Tensor:
+    """Elementwise analytic ``KL(N(mean_q, std_q^2) || N(mean_p, std_p^2))``, same shape as the (broadcast) inputs."""
+    var_ratio = (std_q / std_p).pow(2)
+    mean_term = ((mean_q - mean_p) / std_p).pow(2)
+    return 0.5 * (var_ratio + mean_term - 1.0 - torch.log(var_ratio))
+
+
+def gaussian_nll(x: Tensor, mean: Tensor, std: Tensor | float) -> Tensor:
+    """Elementwise ``-log N(x | mean, std^2)``."""
+    log_std = math.log(std) if isinstance(std, float) else torch.log(std)
+    return 0.5 * ((x - mean) / std).pow(2) + log_std + _HALF_LOG_2PI
+
+
+class GaussianMLP(nn.Module):
+    """Diagonal Gaussian whose mean and std are an ELU MLP of the concatenated inputs; ``std = softplus(raw) + 1e-5``."""
+
+    def __init__(self, input_dim: int, output_dim: int, hidden_units: tuple[int, ...]) -> None:
+        super().__init__()
+        self.net = build_mlp(input_dim, 2 * output_dim, hidden_units, nn.ELU)
+
+    def forward(self, *inputs: Tensor) -> tuple[Tensor, Tensor]:
+        """Inputs (..., d_k) concatenated on the last dim -> (mean, std), each (..., output_dim)."""
+        x = torch.cat(inputs, dim=-1) if len(inputs) > 1 else inputs[0]
+        mean, raw_std = self.net(x).chunk(2, dim=-1)
+        return mean, F.softplus(raw_std) + 1e-5
+
+
+class LatentRollout(NamedTuple):
+    """Posterior rollout over a sequence; every field is (B, T+1, dim)."""
+
+    z1_mean: Tensor
+    z1_std: Tensor
+    z1: Tensor
+    z2: Tensor
+
+
+def _image_encoder(channels: int, size: int, feature_dim: int) -> nn.Sequential:
+    """Conv encoder (C, size, size) -> (feature_dim, 1, 1), ELU after every layer (output included)."""
+    # (out_channels, kernel, padding) of the stride-2 layers; 32x32 images drop the last one.
+    specs = ((32, 5, 2), (64, 3, 1), (128, 3, 1), (256, 3, 1))[: 4 if size == 64 else 3]
+    layers: list[nn.Module] = []
+    in_ch = channels
+    for out_ch, kernel, pad in specs:
+        layers += [nn.Conv2d(in_ch, out_ch, kernel, stride=2, padding=pad), nn.ELU()]
+        in_ch = out_ch
+    layers += [nn.Conv2d(in_ch, feature_dim, 4, stride=1, padding=0), nn.ELU()]
+    return nn.Sequential(*layers)
+
+
+def _image_decoder(z_dim: int, channels: int, size: int) -> nn.Sequential:
+    """ConvTranspose decoder (z_dim, 1, 1) -> (C, size, size), LeakyReLU(0.2) after every layer (output included)."""
+    # 32x32 images drop the first stride-2 layer.
+    widths = (256, 128, 64, 32) if size == 64 else (128, 64, 32)
+    layers: list[nn.Module] = [nn.ConvTranspose2d(z_dim, widths[0], 4, stride=1, padding=0), nn.LeakyReLU(0.2)]
+    for in_ch, out_ch in itertools.pairwise(widths):
+        layers += [nn.ConvTranspose2d(in_ch, out_ch, 3, stride=2, padding=1, output_padding=1), nn.LeakyReLU(0.2)]
+    layers += [nn.ConvTranspose2d(widths[-1], channels, 5, stride=2, padding=2, output_padding=1), nn.LeakyReLU(0.2)]
+    return nn.Sequential(*layers)
+
+
+class LatentModel(nn.Module):
+    """
+    Stochastic latent variable model of Safe SLAC / DS-SLAC with latent ``z = [z1, z2]``.
+
+    Images (C, 64, 64) use the published conv encoder/decoder; (C, 32, 32) uses the same nets with one stride-2 layer
+    less on each side; 1-D observations (D,) use MLPs. Observations are floats (images scaled to [0, 1]).
+
+    :param observation_shape: (C, 64, 64), (C, 32, 32) or (D,)
+    :param action_dim: number of action dimensions (actions in [-1, 1])
+    :param feature_dim: encoder output size per frame
+    :param z1_dim: size of the stochastic z1 (the only part with a KL term)
+    :param z2_dim: size of z2
+    :param hidden_units: hidden layers of every Gaussian / Bernoulli MLP (and of the vector encoder/decoder)
+    :param image_noise: variance of the Gaussian observation likelihood (std = sqrt(image_noise))
+    :param cost_loss_weight: scale of the Bernoulli cost loss
+    :param cost_positive_weight: extra weight of the positive (cost > 0) samples in the cost loss
+    """
+
+    def __init__(
+        self,
+        observation_shape: tuple[int, ...],
+        action_dim: int,
+        feature_dim: int = 200,
+        z1_dim: int = 32,
+        z2_dim: int = 200,
+        hidden_units: tuple[int, ...] = (256, 256),
+        image_noise: float = 0.4,
+        cost_loss_weight: float = 30.0,
+        cost_positive_weight: float = 100.0,
+    ) -> None:
+        super().__init__()
+        self.observation_shape = tuple(observation_shape)
+        self.action_dim = action_dim
+        self.feature_dim = feature_dim
+        self.z1_dim = z1_dim
+        self.z2_dim = z2_dim
+        self.z_dim = z1_dim + z2_dim
+        self.image_std = math.sqrt(image_noise)
+        self.cost_loss_weight = cost_loss_weight
+        self.cost_positive_weight = cost_positive_weight
+
+        if len(self.observation_shape) == 3:
+            channels, height, width = self.observation_shape
+            if height != width or height not in (32, 64):
+                raise ValueError(
+                    f"Unsupported image shape {self.observation_shape}: only 64x64 images (and 32x32 for small tests) "
+                    "are supported. Resize the observations, e.g. width=64, height=64 in safety_envs."
+                )
+            self.encoder = _image_encoder(channels, height, feature_dim)
+            self.decoder = _image_decoder(self.z_dim, channels, height)
+        elif len(self.observation_shape) == 1:
+            obs_dim = self.observation_shape[0]
+            self.encoder = build_mlp(obs_dim, feature_dim, hidden_units, nn.ELU, nn.ELU)
+            self.decoder = build_mlp(self.z_dim, obs_dim, hidden_units, nn.ELU)
+        else:
+            raise ValueError(f"observation_shape must be (C, H, W) or (D,), got {self.observation_shape}")
+
+        # p(z2_0 | z1_0) = q(z2_0 | z1_0)
+        self.z2_init = GaussianMLP(z1_dim, z2_dim, hidden_units)
+        # p(z1_{t+1} | z2_t, a_t)
+        self.z1_prior = GaussianMLP(z2_dim + action_dim, z1_dim, hidden_units)
+        # p(z2_{t+1} | z1_{t+1}, z2_t, a_t) = q(z2_{t+1} | ...)
+        self.z2_transition = GaussianMLP(z1_dim + z2_dim + action_dim, z2_dim, hidden_units)
+        # q(z1_0 | f_0)
+        self.z1_posterior_init = GaussianMLP(feature_dim, z1_dim, hidden_units)
+        # q(z1_{t+1} | f_{t+1}, z2_t, a_t)
+        self.z1_posterior = GaussianMLP(feature_dim + z2_dim + action_dim, z1_dim, hidden_units)
+
+        transition_dim = 2 * self.z_dim + action_dim
+        # p(r_t | z_t, a_t, z_{t+1})
+        self.reward_decoder = GaussianMLP(transition_dim, 1, hidden_units)
+        # p(c_t > 0 | z_t, a_t, z_{t+1}) as one logit
+        self.cost_decoder = build_mlp(transition_dim, 1, hidden_units, nn.ELU)
+
+        init_weights(self)
+
+    def encode(self, observations: Tensor) -> Tensor:
+        """Observations (B, T, *observation_shape) -> features (B, T, feature_dim)."""
+        batch, steps = observations.shape[:2]
+        features = self.encoder(observations.reshape(batch * steps, *self.observation_shape))
+        return features.view(batch, steps, self.feature_dim)
+
+    def decode(self, z: Tensor) -> Tensor:
+        """Latents (B, T, z_dim) -> mean of the observation Gaussian (B, T, *observation_shape)."""
+        batch, steps = z.shape[:2]
+        flat = z.reshape(batch * steps, self.z_dim)
+        if len(self.observation_shape) == 3:
+            flat = flat.view(batch * steps, self.z_dim, 1, 1)
+        return self.decoder(flat).view(batch, steps, *self.observation_shape)
+
+    def posterior(self, features: Tensor, actions: Tensor) -> LatentRollout:
+        """Reparameterised posterior rollout: features (B, T+1, F), actions (B, T, A) -> fields (B, T+1, dim)."""
+        z1_mean, z1_std = self.z1_posterior_init(features[:, 0])
+        z1 = z1_mean + z1_std * torch.randn_like(z1_std)
+        z2_mean, z2_std = self.z2_init(z1)
+        z2 = z2_mean + z2_std * torch.randn_like(z2_std)
+        means, stds, z1s, z2s = [z1_mean], [z1_std], [z1], [z2]
+        for t in range(1, features.shape[1]):
+            z1_mean, z1_std = self.z1_posterior(features[:, t], z2, actions[:, t - 1])
+            z1 = z1_mean + z1_std * torch.randn_like(z1_std)
+            z2_mean, z2_std = self.z2_transition(z1, z2, actions[:, t - 1])
+            z2 = z2_mean + z2_std * torch.randn_like(z2_std)
+            means.append(z1_mean)
+            stds.append(z1_std)
+            z1s.append(z1)
+            z2s.append(z2)
+        return LatentRollout(
+            torch.stack(means, dim=1), torch.stack(stds, dim=1), torch.stack(z1s, dim=1), torch.stack(z2s, dim=1)
+        )
+
+    def _check_sequence(self, observations: Tensor, actions: Tensor) -> None:
+        if tuple(observations.shape[2:]) != self.observation_shape:
+            raise ValueError(f"observations must be (B, T+1, *{self.observation_shape}), got {tuple(observations.shape)}")
+        batch, frames = observations.shape[:2]
+        if tuple(actions.shape) != (batch, frames - 1, self.action_dim):
+            raise ValueError(
+                f"actions must be (B, T, A) = ({batch}, {frames - 1}, {self.action_dim}), got {tuple(actions.shape)}"
+            )
+
+    def loss(
+        self, observations: Tensor, actions: Tensor, rewards: Tensor, costs: Tensor, terminated: Tensor
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """
+        Negative ELBO plus reward and cost likelihoods on a batch of sequences.
+
+        :param observations: (B, T+1, *observation_shape) floats (images in [0, 1])
+        :param actions: (B, T, A) in [-1, 1]
+        :param rewards: (B, T) reward of transition t -> t+1
+        :param costs: (B, T) cost of transition t -> t+1 (binarised as cost > 0)
+        :param terminated: (B, T) 1.0 where transition t ended the episode by termination (masks the reward term)
+        :return: total scalar loss and the detached terms ``kl``, ``image_loss``, ``reward_loss``, ``cost_loss``
+            (each summed over time (and pixels), mean over the batch)
+        """
+        self._check_sequence(observations, actions)
+        if rewards.shape != actions.shape[:2] or costs.shape != rewards.shape or terminated.shape != rewards.shape:
+            raise ValueError(f"rewards, costs and terminated must be (B, T) = {tuple(actions.shape[:2])}")
+
+        rollout = self.posterior(self.encode(observations), actions)
+
+        # KL(q(z1_t | .) || p(z1_t | .)): N(0, I) at t = 0, teacher-forced p(z1_t | z2_{t-1}, a_{t-1}) after.
+        prior_mean, prior_std = self.z1_prior(rollout.z2[:, :-1], actions)
+        prior_mean = torch.cat([torch.zeros_like(rollout.z1_mean[:, :1]), prior_mean], dim=1)
+        prior_std = torch.cat([torch.ones_like(rollout.z1_std[:, :1]), prior_std], dim=1)
+        kl = gaussian_kl(rollout.z1_mean, rollout.z1_std, prior_mean, prior_std).sum(dim=(1, 2)).mean()
+
+        z = torch.cat([rollout.z1, rollout.z2], dim=-1)
+        reconstruction = self.decode(z)
+        image_loss = gaussian_nll(observations, reconstruction, self.image_std).flatten(1).sum(dim=1).mean()
+
+        transitions = torch.cat([z[:, :-1], actions, z[:, 1:]], dim=-1)
+        reward_mean, reward_std = self.reward_decoder(transitions)
+        reward_nll = gaussian_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1))
+        reward_loss = (reward_nll * (1.0 - terminated)).sum(dim=1).mean()
+
+        # log(p + 1e-6) and log(1 - p + 1e-6) from the logit without cancellation: logaddexp(log p, log 1e-6).
+        logits = self.cost_decoder(transitions).squeeze(-1)
+        log_p = torch.logaddexp(F.logsigmoid(logits), torch.full_like(logits, _LOG_COST_EPS))
+        log_not_p = torch.logaddexp(F.logsigmoid(-logits), torch.full_like(logits, _LOG_COST_EPS))
+        unsafe = (costs > 0).to(logits.dtype)
+        cost_ll = self.cost_positive_weight * unsafe * log_p + (1.0 - unsafe) * log_not_p
+        cost_loss = -self.cost_loss_weight * cost_ll.sum(dim=1).mean()
+
+        total = kl + image_loss + reward_loss + cost_loss
+        info = {"kl": kl, "image_loss": image_loss, "reward_loss": reward_loss, "cost_loss": cost_loss}
+        return total, {key: value.detach() for key, value in info.items()}
+
+    def sample_latents(self, observations: Tensor, actions: Tensor) -> Tensor:
+        """Posterior samples ``z = [z1, z2]`` (B, T+1, z_dim) of observations (B, T+1, *obs_shape), actions (B, T, A)."""
+        self._check_sequence(observations, actions)
+        rollout = self.posterior(self.encode(observations), actions)
+        return torch.cat([rollout.z1, rollout.z2], dim=-1)
+
+    def filter_step(
+        self, feature: Tensor, z2_prev: Tensor, action_prev: Tensor, episode_start: Tensor, deterministic: bool = False
+    ) -> tuple[Tensor, Tensor]:
+        """
+        One step of the online belief filter used when acting, batched over N environments.
+
+        :param feature: (N, feature_dim) encoder feature of the current frame
+        :param z2_prev: (N, z2_dim) previous z2 (ignored where ``episode_start``)
+        :param action_prev: (N, A) previous action (ignored where ``episode_start``)
+        :param episode_start: (N,) bool, True where the frame is the first of an episode
+        :param deterministic: use the distribution means instead of samples
+        :return: z1 (N, z1_dim) and z2 (N, z2_dim)
+        """
+        start = episode_start.to(torch.bool).view(-1, 1)
+        init_mean, init_std = self.z1_posterior_init(feature)
+        step_mean, step_std = self.z1_posterior(feature, z2_prev, action_prev)
+        z1 = torch.where(start, init_mean, step_mean)
+        if not deterministic:
+            z1 = z1 + torch.where(start, init_std, step_std) * torch.randn_like(z1)
+        init_mean, init_std = self.z2_init(z1)
+        step_mean, step_std = self.z2_transition(z1, z2_prev, action_prev)
+        z2 = torch.where(start, init_mean, step_mean)
+        if not deterministic:
+            z2 = z2 + torch.where(start, init_std, step_std) * torch.randn_like(z2)
+        return z1, z2

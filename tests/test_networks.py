@@ -1,0 +1,238 @@
+import math
+
+import pytest
+import torch
+from torch.distributions import Normal, kl_divergence
+
+from sb3_dsslac.actor import LatentActor
+from sb3_dsslac.critics import IQNCostCritic, TwinQCritic, quantile_huber_loss, sample_taus
+from sb3_dsslac.latent import LatentModel, gaussian_kl
+
+Z1, Z2, FEATURES, HIDDEN = 4, 8, 16, (32, 32)
+BATCH, STEPS, ACTION_DIM = 2, 3, 2
+
+
+def make_model(observation_shape: tuple[int, ...], **kwargs) -> LatentModel:
+    return LatentModel(
+        observation_shape, ACTION_DIM, feature_dim=FEATURES, z1_dim=Z1, z2_dim=Z2, hidden_units=HIDDEN, **kwargs
+    )
+
+
+def make_batch(observation_shape: tuple[int, ...]) -> tuple[torch.Tensor, ...]:
+    observations = torch.rand(BATCH, STEPS + 1, *observation_shape)
+    actions = torch.rand(BATCH, STEPS, ACTION_DIM) * 2 - 1
+    rewards = torch.randn(BATCH, STEPS)
+    costs = torch.tensor([[0.0, 1.0, 0.0], [2.0, 0.0, 0.0]])
+    terminated = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    return observations, actions, rewards, costs, terminated
+
+
+def test_quantile_huber_loss_hand_example():
+    current = torch.tensor([[0.0, 1.0]], requires_grad=True)
+    taus = torch.tensor([[0.25, 0.75]])
+    target = torch.tensor([[0.5, 3.0]])
+    # delta_ij = target_j - current_i: [[0.5, 3.0], [-0.5, 2.0]]
+    # kappa = 1: Huber [[0.125, 2.5], [0.125, 1.5]]; weights |tau_i - 1{delta < 0}| [[0.25, 0.25], [0.25, 0.75]]
+    # terms [[0.03125, 0.625], [0.03125, 1.125]]; sum over i: [0.0625, 1.75]; mean over j: 0.90625
+    loss = quantile_huber_loss(current, target, taus)
+    assert loss.item() == pytest.approx(0.90625)
+    # d/d current_i = -mean_j weight_ij * clip(delta_ij, -1, 1): [-(0.25*0.5 + 0.25*1)/2, -(0.25*-0.5 + 0.75*1)/2]
+    loss.backward()
+    torch.testing.assert_close(current.grad, torch.tensor([[-0.1875, -0.3125]]))
+    # kappa = 2: Huber [[0.125, 4.0], [0.125, 2.0]] / 2; terms [[0.015625, 0.5], [0.015625, 0.75]] -> 0.640625
+    assert quantile_huber_loss(current.detach(), target, taus, kappa=2.0).item() == pytest.approx(0.640625)
+
+
+def test_quantile_huber_loss_rejects_mismatched_taus():
+    with pytest.raises(ValueError):
+        quantile_huber_loss(torch.zeros(2, 3), torch.zeros(2, 4), torch.zeros(2, 4))
+
+
+def test_gaussian_kl():
+    mean, std = torch.randn(4, 5), torch.rand(4, 5) + 0.1
+    torch.testing.assert_close(gaussian_kl(mean, std, mean, std), torch.zeros(4, 5))
+    mean_p, std_p = torch.randn(4, 5), torch.rand(4, 5) + 0.1
+    expected = kl_divergence(Normal(mean, std), Normal(mean_p, std_p))
+    torch.testing.assert_close(gaussian_kl(mean, std, mean_p, std_p), expected)
+
+
+@pytest.mark.parametrize("observation_shape", [(3, 64, 64), (3, 32, 32), (1, 32, 32), (5,)])
+def test_latent_model_shapes_and_gradients(observation_shape):
+    model = make_model(observation_shape)
+    assert model.z_dim == Z1 + Z2
+    observations, actions, rewards, costs, terminated = make_batch(observation_shape)
+
+    features = model.encode(observations)
+    assert features.shape == (BATCH, STEPS + 1, FEATURES)
+    rollout = model.posterior(features, actions)
+    assert rollout.z1_mean.shape == rollout.z1_std.shape == rollout.z1.shape == (BATCH, STEPS + 1, Z1)
+    assert rollout.z2.shape == (BATCH, STEPS + 1, Z2)
+    assert (rollout.z1_std > 0).all()
+    assert model.decode(torch.randn(BATCH, STEPS + 1, Z1 + Z2)).shape == observations.shape
+    assert model.sample_latents(observations, actions).shape == (BATCH, STEPS + 1, Z1 + Z2)
+
+    total, info = model.loss(observations, actions, rewards, costs, terminated)
+    assert total.shape == ()
+    assert set(info) == {"kl", "image_loss", "reward_loss", "cost_loss"}
+    assert all(not value.requires_grad and torch.isfinite(value) for value in info.values())
+    torch.testing.assert_close(total.detach(), sum(info.values()))
+    assert info["kl"] >= 0
+    total.backward()
+    for name, param in model.named_parameters():
+        assert param.grad is not None, name
+        assert torch.isfinite(param.grad).all(), name
+
+
+def test_latent_model_image_loss_uses_variance():
+    model = make_model((5,), image_noise=0.4)
+    observations, actions, rewards, costs, terminated = make_batch((5,))
+    torch.manual_seed(0)
+    z = model.sample_latents(observations, actions)
+    nll = 0.5 * (observations - model.decode(z)).pow(2) / 0.4 + 0.5 * math.log(2 * math.pi * 0.4)
+    torch.manual_seed(0)
+    _, info = model.loss(observations, actions, rewards, costs, terminated)
+    torch.testing.assert_close(info["image_loss"], nll.sum(dim=(1, 2)).mean().detach())
+
+
+@pytest.mark.parametrize("observation_shape", [(3, 48, 48), (3, 64, 32), (3, 128, 128), (64, 64), (2, 3, 4, 5)])
+def test_latent_model_rejects_unsupported_shapes(observation_shape):
+    with pytest.raises(ValueError):
+        make_model(observation_shape)
+
+
+def test_latent_model_rejects_mismatched_actions():
+    model = make_model((5,))
+    observations, actions, rewards, costs, terminated = make_batch((5,))
+    with pytest.raises(ValueError):
+        model.loss(observations, actions[:, :-1], rewards, costs, terminated)
+
+
+@pytest.mark.parametrize("logit", [0.3, -4.0, -30.0, 30.0])
+def test_cost_loss_weights(logit):
+    model = make_model((5,), cost_loss_weight=30.0, cost_positive_weight=100.0)
+    output_layer = model.cost_decoder[-1]
+    with torch.no_grad():
+        output_layer.weight.zero_()
+        output_layer.bias.fill_(logit)
+    p = torch.sigmoid(torch.tensor(logit, dtype=torch.float64)).item()
+    observations, actions, rewards, _, terminated = make_batch((5,))
+
+    costs = torch.ones(BATCH, STEPS)  # y = 1 everywhere
+    _, info = model.loss(observations, actions, rewards, costs, terminated)
+    expected = -30.0 * 100.0 * STEPS * math.log(p + 1e-6)
+    assert info["cost_loss"].item() == pytest.approx(expected, rel=1e-5)
+
+    costs = torch.tensor([[0.0, 1.0, 0.0], [2.0, 0.0, 0.0]])  # y = 1 for 2 of the 6 steps
+    _, info = model.loss(observations, actions, rewards, costs, terminated)
+    expected = -30.0 * (100.0 * 2 * math.log(p + 1e-6) + 4 * math.log(1 - p + 1e-6)) / BATCH
+    assert info["cost_loss"].item() == pytest.approx(expected, rel=1e-5)
+
+
+def test_reward_loss_masked_by_termination():
+    model = make_model((5,))
+    observations, actions, rewards, costs, _ = make_batch((5,))
+    torch.manual_seed(1)
+    _, unmasked = model.loss(observations, actions, rewards, costs, torch.zeros(BATCH, STEPS))
+    torch.manual_seed(1)
+    _, masked = model.loss(observations, actions, rewards, costs, torch.ones(BATCH, STEPS))
+    assert unmasked["reward_loss"] != 0
+    assert masked["reward_loss"] == 0
+
+
+def test_filter_step():
+    model = make_model((3, 32, 32))
+    n = 4
+    feature = torch.randn(n, FEATURES)
+    z2_prev, action_prev = torch.randn(n, Z2), torch.rand(n, ACTION_DIM) * 2 - 1
+    episode_start = torch.tensor([True, False, True, False])
+    with torch.no_grad():
+        z1, z2 = model.filter_step(feature, z2_prev, action_prev, episode_start, deterministic=True)
+        assert z1.shape == (n, Z1) and z2.shape == (n, Z2)
+        z1_again, z2_again = model.filter_step(feature, z2_prev, action_prev, episode_start, deterministic=True)
+        torch.testing.assert_close(z1, z1_again, rtol=0, atol=0)
+        torch.testing.assert_close(z2, z2_again, rtol=0, atol=0)
+
+        z1_other, z2_other = model.filter_step(feature, torch.randn(n, Z2), -action_prev, episode_start, deterministic=True)
+        torch.testing.assert_close(z1_other[episode_start], z1[episode_start], rtol=0, atol=0)
+        torch.testing.assert_close(z2_other[episode_start], z2[episode_start], rtol=0, atol=0)
+        assert not torch.allclose(z1_other[~episode_start], z1[~episode_start])
+        assert not torch.allclose(z2_other[~episode_start], z2[~episode_start])
+
+        # Episode starts follow q(z1 | f) then p(z2 | z1); other rows the recurrent networks.
+        start_mean, _ = model.z1_posterior_init(feature)
+        torch.testing.assert_close(z1[episode_start], start_mean[episode_start])
+        step_mean, _ = model.z1_posterior(feature, z2_prev, action_prev)
+        torch.testing.assert_close(z1[~episode_start], step_mean[~episode_start])
+
+        torch.manual_seed(0)
+        z1_sampled, _ = model.filter_step(feature, z2_prev, action_prev, episode_start)
+        assert not torch.allclose(z1_sampled, z1)
+
+
+def test_twin_q_critic():
+    critic = TwinQCritic(Z1 + Z2, ACTION_DIM, hidden_units=HIDDEN)
+    q1, q2 = critic(torch.randn(5, Z1 + Z2), torch.rand(5, ACTION_DIM))
+    assert q1.shape == q2.shape == (5, 1)
+    assert not torch.allclose(q1, q2)
+
+
+def test_iqn_cost_critic():
+    critic = IQNCostCritic(Z1 + Z2, ACTION_DIM, n_cosines=16, hidden_dim=32)
+    z, actions = torch.randn(5, Z1 + Z2), torch.rand(5, ACTION_DIM)
+    taus = sample_taus(5, 7, "cpu")
+    quantiles = critic(z, actions, taus)
+    assert quantiles.shape == (5, 7)
+    # Quantile i of a row depends only on that row's tau_i.
+    taus_changed = taus.clone()
+    taus_changed[:, 3] = 1.0 - taus_changed[:, 3]
+    changed = critic(z, actions, taus_changed)
+    torch.testing.assert_close(changed[:, [0, 1, 2, 4, 5, 6]], quantiles[:, [0, 1, 2, 4, 5, 6]])
+    assert not torch.allclose(changed[:, 3], quantiles[:, 3])
+
+
+@pytest.mark.parametrize("risk_level", [1.0, 0.25])
+def test_sample_taus_range(risk_level):
+    taus = sample_taus(64, 32, "cpu", risk_level=risk_level)
+    assert taus.shape == (64, 32)
+    assert (taus >= 1 - risk_level).all() and (taus <= 1).all()
+    assert taus.min() < 1 - risk_level + 0.1 * risk_level and taus.max() > 1 - 0.1 * risk_level
+
+
+@pytest.mark.parametrize("risk_level", [0.0, -0.5, 1.5])
+def test_sample_taus_rejects_bad_risk_level(risk_level):
+    with pytest.raises(ValueError):
+        sample_taus(2, 3, "cpu", risk_level=risk_level)
+
+
+def test_actor():
+    actor = LatentActor(Z1 + Z2, ACTION_DIM, hidden_units=HIDDEN)
+    z = torch.randn(64, Z1 + Z2)
+    actions = actor(z)
+    assert actions.shape == (64, ACTION_DIM)
+    assert (actions.abs() < 1).all()
+    torch.testing.assert_close(actor(z, deterministic=True), actor(z, deterministic=True), rtol=0, atol=0)
+    assert not torch.allclose(actor(z), actor(z))
+
+    torch.manual_seed(3)
+    sampled, log_prob = actor.action_log_prob(z)
+    assert sampled.shape == (64, ACTION_DIM) and log_prob.shape == (64,)
+    assert (sampled.abs() < 1).all()
+    # Replay the noise and evaluate the tanh-Gaussian density directly in float64.
+    torch.manual_seed(3)
+    noise = torch.randn(64, ACTION_DIM).double()
+    mean, log_std = actor.net(z).detach().double().chunk(2, dim=-1)
+    std = log_std.clamp(-20, 2).exp()
+    pre_tanh = mean + std * noise
+    torch.testing.assert_close(sampled.detach().double(), torch.tanh(pre_tanh), rtol=0, atol=1e-5)
+    expected = Normal(mean, std).log_prob(pre_tanh) - torch.log(1 - torch.tanh(pre_tanh).pow(2))
+    torch.testing.assert_close(log_prob.detach().double(), expected.sum(dim=-1), rtol=0, atol=1e-4)
+    log_prob.sum().backward()
+    assert all(param.grad is not None and torch.isfinite(param.grad).all() for param in actor.parameters())
+
+
+def test_actor_log_prob_stable_when_saturated():
+    actor = LatentActor(Z1 + Z2, ACTION_DIM, hidden_units=HIDDEN)
+    with torch.no_grad():
+        actor.net[-1].bias[:ACTION_DIM] = 30.0  # tanh(mean) == 1 in float32
+    _, log_prob = actor.action_log_prob(torch.randn(8, Z1 + Z2))
+    assert torch.isfinite(log_prob).all()
