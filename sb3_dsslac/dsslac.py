@@ -1,0 +1,520 @@
+"""DS-SLAC: Distributional Safe Stochastic Latent Actor-Critic as a Stable-Baselines3 off-policy algorithm."""
+
+from collections import defaultdict, deque
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import polyak_update, safe_mean
+from stable_baselines3.common.vec_env import VecEnv
+from torch.nn import functional as F
+from tqdm.auto import tqdm
+
+from sb3_dsslac.buffers import SequenceReplayBuffer
+from sb3_dsslac.critics import quantile_huber_loss, sample_taus
+from sb3_dsslac.lagrange import LagrangeCallback, cost_from_info, inverse_softplus, softplus
+from sb3_dsslac.policies import LatentPolicy
+
+SelfDSSLAC = TypeVar("SelfDSSLAC", bound="DSSLAC")
+
+
+def _infer_episode_length(env: VecEnv) -> int | None:
+    """Agent steps of one episode of ``env``, from its time limit, or None when it has none."""
+    spec = env.get_attr("spec")[0]
+    if spec is not None and spec.max_episode_steps is not None:
+        return int(spec.max_episode_steps)
+    for name in ("_max_episode_steps", "max_episode_steps"):  # a TimeLimit wrapper's, then the env's own
+        try:
+            return int(env.get_attr(name)[0])
+        except (AttributeError, TypeError):
+            continue
+    return None
+
+
+def _infer_action_repeat(env: VecEnv) -> int:
+    """Simulator steps per agent step of ``env`` (its ``action_repeat`` attribute, else 1)."""
+    try:
+        return int(env.get_attr("action_repeat")[0])
+    except (AttributeError, TypeError):
+        return 1
+
+
+def _has_lagrange_callback(callback: MaybeCallback) -> bool:
+    if isinstance(callback, LagrangeCallback):
+        return True
+    if isinstance(callback, CallbackList):
+        return any(_has_lagrange_callback(child) for child in callback.callbacks)
+    if isinstance(callback, list):
+        return any(_has_lagrange_callback(child) for child in callback)
+    return False
+
+
+class DSSLAC(OffPolicyAlgorithm):
+    """
+    Distributional Safe Stochastic Latent Actor-Critic (Miranda, 2023), built on Safe SLAC (Hogewind et al., 2023).
+
+    A sequential latent model learned from the observations (pixels or vectors) gives a belief ``z``; a SAC actor and
+    twin reward critic and an implicit-quantile cost critic act and learn on ``z``; a Lagrange multiplier, updated
+    on-policy from the real costs of the training episodes, trades reward against the cost budget.
+
+    Units: one timestep is one ``env.step`` (an agent step, ``action_repeat`` simulator steps). Costs come from
+    ``info["cost"]``. Defaults are the thesis's Table 5.2 and the code behind its numbers.
+
+    :param policy: "LatentPolicy" or the class
+    :param env: the env or its registered id; must report ``info["cost"]`` every step
+    :param learning_rate: Adam step size of the actor, the critics and the entropy coefficient (or a schedule)
+    :param buffer_size: frames kept in the replay buffer (over all envs)
+    :param learning_starts: agent steps of random actions (``tanh(N(0, 2^2))``) before learning
+    :param latent_pretrain_steps: latent-model updates run once, at the first ``train()`` after the warm-up
+    :param batch_size: sequences per actor-critic update
+    :param latent_batch_size: sequences per latent-model update
+    :param sequence_length: transitions per sampled sequence (frames: ``sequence_length + 1``)
+    :param tau: Polyak factor of the target critics
+    :param gamma: discount of the reward
+    :param cost_gamma: discount of the cost
+    :param train_freq: agent steps between training bursts
+    :param gradient_steps: updates per burst (each is one latent and one actor-critic update)
+    :param latent_learning_rate: Adam step size of the latent model
+    :param ent_coef: entropy coefficient, "auto" (learned from 1.0) or "auto_<init>" (learned from init), or a float
+    :param target_entropy: target entropy of the learned coefficient; "auto" is ``-action_dim``
+    :param cost_limit: cost budget per episode (Safety-Gym: 25 per 1000 simulator steps)
+    :param episode_length: agent steps per episode, to turn the budget into a per-step budget for the multiplier;
+        None reads the env's time limit
+    :param lagrange_init: initial Lagrange multiplier
+    :param lagrange_learning_rate: SGD step size of the multiplier's raw (pre-softplus) parameter
+    :param n_quantiles: N = N' = K, the quantile fractions sampled per update by the IQN critic and the actor
+    :param cvar_risk_level: beta in (0, 1]: the actor's K fractions are drawn from U(1 - beta, 1); 1.0 is the mean
+    :param max_grad_norm: gradient-norm clip of the latent model and the critics
+    :param actor_max_grad_norm: gradient-norm clip of the actor (80 in the reference code)
+    :param image_noise: variance of the Gaussian observation likelihood
+    :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss
+    :param cost_positive_weight: extra weight of unsafe steps in the cost likelihood
+    :param replay_buffer_kwargs: extra keywords of the ``SequenceReplayBuffer``
+    :param stats_window_size: episodes averaged in the rollout logs
+    :param tensorboard_log: TensorBoard log folder
+    :param policy_kwargs: keywords of the policy (``z1_dim``, ``z2_dim``, ``feature_dim``, ``hidden_units``, ``n_cosines``)
+    :param verbose: 0 silent, 1 info (with a progress bar for the latent pre-training), 2 debug
+    :param seed: random seed
+    :param device: "cpu", "cuda" or "auto"
+    :param _init_setup_model: build the networks at construction
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"LatentPolicy": LatentPolicy}
+    policy: LatentPolicy
+    replay_buffer: SequenceReplayBuffer
+
+    def __init__(
+        self,
+        policy: str | type[LatentPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 2e-4,
+        buffer_size: int = 200_000,
+        learning_starts: int = 30_000,
+        latent_pretrain_steps: int = 30_000,
+        batch_size: int = 64,
+        latent_batch_size: int = 32,
+        sequence_length: int = 10,
+        tau: float = 5e-3,
+        gamma: float = 0.99,
+        cost_gamma: float = 0.995,
+        train_freq: int | tuple[int, str] = 100,
+        gradient_steps: int = 100,
+        latent_learning_rate: float = 1e-4,
+        ent_coef: str | float = "auto_4e-3",
+        target_entropy: str | float = "auto",
+        cost_limit: float = 25.0,
+        episode_length: int | None = None,
+        lagrange_init: float = 0.02,
+        lagrange_learning_rate: float = 2e-4,
+        n_quantiles: int = 64,
+        cvar_risk_level: float = 1.0,
+        max_grad_norm: float = 40.0,
+        actor_max_grad_norm: float = 80.0,
+        image_noise: float = 0.4,
+        cost_loss_weight: float = 30.0,
+        cost_positive_weight: float = 100.0,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            replay_buffer_class=SequenceReplayBuffer,
+            replay_buffer_kwargs={"sequence_length": sequence_length, **(replay_buffer_kwargs or {})},
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            support_multi_env=True,
+            sde_support=False,
+        )
+        self.latent_pretrain_steps = latent_pretrain_steps
+        self.latent_batch_size = latent_batch_size
+        self.sequence_length = sequence_length
+        self.cost_gamma = cost_gamma
+        self.latent_learning_rate = latent_learning_rate
+        self.ent_coef = ent_coef
+        self.target_entropy = target_entropy
+        self.cost_limit = cost_limit
+        self.episode_length = episode_length
+        self.lagrange_init = lagrange_init
+        self.lagrange_learning_rate = lagrange_learning_rate
+        self.n_quantiles = n_quantiles
+        self.cvar_risk_level = cvar_risk_level
+        self.max_grad_norm = max_grad_norm
+        self.actor_max_grad_norm = actor_max_grad_norm
+        self.policy_kwargs.update(
+            image_noise=image_noise,
+            cost_loss_weight=cost_loss_weight,
+            cost_positive_weight=cost_positive_weight,
+            latent_learning_rate=latent_learning_rate,
+        )
+        # Run state that is saved with the model (so that resuming never repeats the pre-training)
+        self.latent_pretrained = False
+        self.action_repeat = 1
+        self.total_cost = 0.0
+        # Rollout state, not saved: the training envs' filter state and running episode costs
+        self._last_filter_state: tuple[th.Tensor, th.Tensor] | None = None
+        self._episode_costs = np.zeros(0)
+        self.ep_cost_buffer: deque[float] = deque(maxlen=stats_window_size)
+
+        if self.env is not None:
+            self._check_spaces(self.observation_space, self.action_space)
+            self.action_repeat = _infer_action_repeat(self.env)
+            if self.episode_length is None:
+                self.episode_length = _infer_episode_length(self.env)
+            if self.episode_length is None:
+                raise ValueError(
+                    "Cannot tell how many agent steps an episode of this env has (it has no time limit): "
+                    "pass episode_length=<agent steps per episode> so that cost_limit can be spread over the steps."
+                )
+        if not 0.0 < cvar_risk_level <= 1.0:
+            raise ValueError(f"cvar_risk_level must be in (0, 1], got {cvar_risk_level}")
+        if _init_setup_model:
+            self._setup_model()
+
+    @staticmethod
+    def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
+        """Raise a ValueError naming the fix for spaces DS-SLAC cannot handle."""
+        if not isinstance(action_space, spaces.Box):
+            raise ValueError(
+                f"DS-SLAC needs a continuous Box action space, got {action_space}. "
+                "Discrete-action envs need a different algorithm (or a wrapper mapping a Box to the discrete actions)."
+            )
+        if not isinstance(observation_space, spaces.Box) or len(observation_space.shape) not in (1, 3):
+            raise ValueError(
+                f"DS-SLAC encodes Box images (C, H, W) or flat Box vectors, got {observation_space}. "
+                "For safety_envs use obs_type='pixels' or obs_type='state'; "
+                "flatten or select Dict observations with a wrapper."
+            )
+
+    @property
+    def cost_budget_per_step(self) -> float:
+        """The episode budget spread over the agent steps of an episode (25 / 500 = 0.05 for the thesis setting)."""
+        assert self.episode_length is not None
+        return self.cost_limit / self.episode_length
+
+    @property
+    def lagrange_multiplier(self) -> float:
+        """The current Lagrange multiplier (softplus of its raw parameter)."""
+        return softplus(float(self.lagrange_raw.item()))
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        self.lagrange_raw = th.tensor(inverse_softplus(self.lagrange_init), dtype=th.float64)
+        if self.target_entropy == "auto":
+            self.target_entropy = -float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
+        else:
+            self.target_entropy = float(self.target_entropy)
+        self.ent_coef_optimizer: th.optim.Adam | None = None
+        if isinstance(self.ent_coef, str) and self.ent_coef.startswith("auto"):
+            init_value = float(self.ent_coef.split("_")[1]) if "_" in self.ent_coef else 1.0
+            if init_value <= 0.0:
+                raise ValueError(f"The initial entropy coefficient must be greater than 0, got {self.ent_coef}")
+            self.log_ent_coef = th.log(th.full((1,), init_value, device=self.device)).requires_grad_(True)
+            self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1))
+        else:
+            self.ent_coef_tensor = th.tensor(float(self.ent_coef), device=self.device)
+
+    # ----------------------------------------------------------------------------------------------------------------
+    # Acting
+    # ----------------------------------------------------------------------------------------------------------------
+
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, BaseCallback]:
+        envs_reset = reset_num_timesteps or self._last_obs is None
+        if reset_num_timesteps:
+            self.total_cost = 0.0
+            self.ep_cost_buffer = deque(maxlen=self._stats_window_size)
+        result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        assert self.env is not None
+        if envs_reset or self._last_filter_state is None or len(self._episode_costs) != self.env.num_envs:
+            # Fresh episodes (or a run resumed without its rollout state): every filter restarts at the next frame
+            self._last_filter_state = None
+            self._last_episode_starts = np.ones(self.env.num_envs, dtype=bool)
+            self._episode_costs = np.zeros(self.env.num_envs)
+        return result
+
+    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
+        """Attach the on-policy ``LagrangeCallback`` unless the caller already passed one."""
+        if not _has_lagrange_callback(callback):
+            if callback is None:
+                callback = [LagrangeCallback()]
+            elif isinstance(callback, list):
+                callback = [LagrangeCallback(), *callback]
+            else:
+                callback = [LagrangeCallback(), callback]
+        return super()._init_callback(callback, progress_bar)
+
+    def _sample_action(
+        self, learning_starts: int, action_noise: Any = None, n_envs: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Advance the training envs' latent filter on the last observation and act: ``tanh(N(0, 2^2))`` random actions
+        during the warm-up (they advance the filter too), the stochastic actor afterwards.
+        """
+        assert self._last_obs is not None and isinstance(self._last_obs, np.ndarray)
+        if self._last_filter_state is None:
+            self._last_filter_state = self.policy.initial_state(n_envs)
+        observation = th.as_tensor(self._last_obs, device=self.device)
+        episode_start = th.as_tensor(self._last_episode_starts, dtype=th.bool, device=self.device)
+        self.policy.set_training_mode(False)
+        with th.inference_mode():
+            z, z2 = self.policy.belief_step(observation, *self._last_filter_state, episode_start, deterministic=False)
+            if self.num_timesteps < learning_starts:
+                scaled_action = th.tanh(2.0 * th.randn(n_envs, self._action_dim, device=self.device))
+            else:
+                scaled_action = self.policy.actor(z)
+        self._last_filter_state = (z2, scaled_action)
+        buffer_action = scaled_action.cpu().numpy()
+        return self.policy.unscale_action(buffer_action), buffer_action
+
+    @property
+    def _action_dim(self) -> int:
+        return int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
+
+    def _store_transition(
+        self,
+        replay_buffer: ReplayBuffer,
+        buffer_action: np.ndarray,
+        new_obs: np.ndarray | dict[str, np.ndarray],
+        reward: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        costs = np.array([cost_from_info(info) for info in infos])
+        self._episode_costs += costs
+        self.total_cost += float(costs.sum())
+        for idx in np.flatnonzero(dones):
+            self.ep_cost_buffer.append(float(self._episode_costs[idx]))
+            self._episode_costs[idx] = 0.0
+        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        self._last_episode_starts = np.array(dones, dtype=bool)
+
+    def dump_logs(self) -> None:
+        sim_steps = self.num_timesteps * self.action_repeat
+        if len(self.ep_cost_buffer) > 0:
+            self.logger.record("rollout/ep_cost_mean", safe_mean(list(self.ep_cost_buffer)))
+        self.logger.record("rollout/cost_rate", self.total_cost / max(sim_steps, 1))
+        self.logger.record("time/sim_steps", sim_steps)
+        super().dump_logs()
+
+    # ----------------------------------------------------------------------------------------------------------------
+    # Learning
+    # ----------------------------------------------------------------------------------------------------------------
+
+    def _check_finite(self, name: str, loss: th.Tensor) -> None:
+        """Stop before an optimizer step would spread a NaN or inf into the weights."""
+        if not bool(th.isfinite(loss).all()):
+            raise RuntimeError(
+                f"DS-SLAC's {name} became {loss.item()} at update {self._n_updates} (timestep {self.num_timesteps}); "
+                "training stopped before the weights were corrupted. Check the env's observations, rewards and costs "
+                "for NaN/inf, or lower the learning rates."
+            )
+
+    def _pretrain_latent(self) -> None:
+        """The one-off latent-model pre-training of Algorithm 1 (W_t updates on the random-policy data)."""
+        losses = []
+        for _ in tqdm(range(self.latent_pretrain_steps), desc="latent pre-training", disable=self.verbose < 1):
+            losses.append(self._latent_update()["latent_loss"])
+        self.latent_pretrained = True
+        if losses:
+            self.logger.record("train/pretrain_latent_loss", float(th.stack(losses[-100:]).mean()))
+
+    def _latent_update(self) -> dict[str, th.Tensor]:
+        """One latent-model update on ``latent_batch_size`` sequences; returns its detached losses."""
+        batch = self.replay_buffer.sample(self.latent_batch_size)
+        observations = self.policy.preprocess(batch.observations)
+        loss, parts = self.policy.latent.loss(observations, batch.actions, batch.rewards, batch.costs, batch.terminated)
+        self._check_finite("latent_loss", loss)
+        self.policy.latent_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        th.nn.utils.clip_grad_norm_(self.policy.latent.parameters(), self.max_grad_norm)
+        self.policy.latent_optimizer.step()
+        return {"latent_loss": loss.detach(), **parts}
+
+    def _actor_critic_update(self) -> dict[str, th.Tensor]:
+        """One update of the reward critic, the IQN cost critic, the actor and the entropy coefficient on the latent z."""
+        policy = self.policy
+        batch = self.replay_buffer.sample(self.batch_size)
+        n = batch.actions.shape[0]
+        with th.no_grad():
+            latents = policy.latent.sample_latents(policy.preprocess(batch.observations), batch.actions)
+        z, next_z = latents[:, -2], latents[:, -1]
+        actions = batch.actions[:, -1]
+        rewards, costs = batch.rewards[:, -1:], batch.costs[:, -1:]
+        not_terminated = 1.0 - batch.terminated[:, -1:]
+        ent_coef = th.exp(self.log_ent_coef.detach()) if self.ent_coef_optimizer is not None else self.ent_coef_tensor
+        multiplier = self.lagrange_multiplier
+
+        with th.no_grad():
+            next_actions, next_log_prob = policy.actor.action_log_prob(next_z)
+            next_q = th.min(*policy.critic_target(next_z, next_actions)) - ent_coef * next_log_prob.unsqueeze(-1)
+            target_q = rewards + not_terminated * self.gamma * next_q
+            target_taus = sample_taus(n, self.n_quantiles, self.device)
+            next_quantiles = policy.cost_critic_target(next_z, next_actions, target_taus)
+            target_quantiles = costs + not_terminated * self.cost_gamma * next_quantiles
+
+        q1, q2 = policy.critic(z, actions)
+        critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
+        self._check_finite("critic_loss", critic_loss)
+        policy.critic_optimizer.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        th.nn.utils.clip_grad_norm_(policy.critic.parameters(), self.max_grad_norm)
+        policy.critic_optimizer.step()
+
+        taus = sample_taus(n, self.n_quantiles, self.device)
+        cost_critic_loss = quantile_huber_loss(policy.cost_critic(z, actions, taus), target_quantiles, taus)
+        self._check_finite("cost_critic_loss", cost_critic_loss)
+        policy.cost_critic_optimizer.zero_grad(set_to_none=True)
+        cost_critic_loss.backward()
+        th.nn.utils.clip_grad_norm_(policy.cost_critic.parameters(), self.max_grad_norm)
+        policy.cost_critic_optimizer.step()
+
+        # The actor's loss must not fill the critics' gradients
+        policy.critic.requires_grad_(False)
+        policy.cost_critic.requires_grad_(False)
+        pi_actions, log_prob = policy.actor.action_log_prob(z)
+        q_pi = th.min(*policy.critic(z, pi_actions))
+        actor_taus = sample_taus(n, self.n_quantiles, self.device, risk_level=self.cvar_risk_level)
+        cost_value = policy.cost_critic(z, pi_actions, actor_taus).mean(dim=1, keepdim=True)
+        actor_loss = (ent_coef * log_prob.unsqueeze(-1) - q_pi + multiplier * cost_value).mean()
+        policy.critic.requires_grad_(True)
+        policy.cost_critic.requires_grad_(True)
+        self._check_finite("actor_loss", actor_loss)
+        policy.actor_optimizer.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        th.nn.utils.clip_grad_norm_(policy.actor.parameters(), self.actor_max_grad_norm)
+        policy.actor_optimizer.step()
+
+        stats = {
+            "critic_loss": critic_loss.detach(),
+            "cost_critic_loss": cost_critic_loss.detach(),
+            "actor_loss": actor_loss.detach(),
+            "cost_value": cost_value.detach().mean(),
+            "ent_coef": ent_coef.detach().reshape(()),
+        }
+        if self.ent_coef_optimizer is not None:
+            ent_coef_loss = -(self.log_ent_coef * (log_prob.detach() + self.target_entropy)).mean()
+            self._check_finite("ent_coef_loss", ent_coef_loss)
+            self.ent_coef_optimizer.zero_grad(set_to_none=True)
+            ent_coef_loss.backward()
+            th.nn.utils.clip_grad_norm_([self.log_ent_coef], self.max_grad_norm)
+            self.ent_coef_optimizer.step()
+            stats["ent_coef_loss"] = ent_coef_loss.detach()
+
+        polyak_update(policy.critic.parameters(), policy.critic_target.parameters(), self.tau)
+        polyak_update(policy.cost_critic.parameters(), policy.cost_critic_target.parameters(), self.tau)
+        return stats
+
+    def train(self, gradient_steps: int, batch_size: int) -> None:
+        """
+        ``gradient_steps`` updates, each one latent-model update and one actor-critic update (Algorithm 1).
+        The first call runs the latent pre-training once.
+        """
+        self.policy.set_training_mode(True)
+        optimizers = [self.policy.actor_optimizer, self.policy.critic_optimizer, self.policy.cost_critic_optimizer]
+        if self.ent_coef_optimizer is not None:
+            optimizers.append(self.ent_coef_optimizer)
+        self._update_learning_rate(optimizers)
+        self.batch_size = batch_size
+
+        if not self.latent_pretrained:
+            self._pretrain_latent()
+
+        history: dict[str, list[th.Tensor]] = defaultdict(list)
+        for _ in range(gradient_steps):
+            for key, value in {**self._latent_update(), **self._actor_critic_update()}.items():
+                history[key].append(value)
+        self._n_updates += gradient_steps
+
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/lagrange_multiplier", self.lagrange_multiplier)
+        for key, values in history.items():
+            self.logger.record(f"train/{key}", float(th.stack(values).mean()))
+
+    def learn(
+        self: SelfDSSLAC,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "DSSLAC",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfDSSLAC:
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    # ----------------------------------------------------------------------------------------------------------------
+    # Save / load
+    # ----------------------------------------------------------------------------------------------------------------
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "_last_filter_state", "_episode_costs", "ep_cost_buffer"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts = [
+            "policy",
+            "policy.latent_optimizer",
+            "policy.actor_optimizer",
+            "policy.critic_optimizer",
+            "policy.cost_critic_optimizer",
+        ]
+        if self.ent_coef_optimizer is not None:
+            state_dicts.append("ent_coef_optimizer")
+            return state_dicts, ["log_ent_coef", "lagrange_raw"]
+        return state_dicts, ["ent_coef_tensor", "lagrange_raw"]

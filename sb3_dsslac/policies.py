@@ -1,0 +1,233 @@
+"""LatentPolicy: the latent model, actor, twin reward critic and IQN cost critic of DS-SLAC behind SB3's policy API."""
+
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import preprocess_obs
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+
+from sb3_dsslac.actor import LatentActor
+from sb3_dsslac.critics import IQNCostCritic, TwinQCritic
+from sb3_dsslac.latent import LatentModel
+
+# Filter state carried through ``predict``: (z2 (n_envs, z2_dim), previous action scaled to [-1, 1] (n_envs, action_dim))
+FilterState = tuple[np.ndarray, np.ndarray]
+
+
+class LatentPolicy(BasePolicy):
+    """
+    The DS-SLAC policy: a sequential latent model filters the observations into a belief ``z = [z1, z2]``, on which
+    a tanh-Gaussian actor, a twin reward critic and an implicit-quantile cost critic operate.
+
+    ``predict(obs, state, episode_start)`` runs one step of the latent filter and returns its new state, as
+    ``RecurrentPPO`` does, so ``evaluate_policy`` and ``EvalCallback`` work unchanged.
+
+    :param observation_space: Box of uint8 images (C, 64, 64) or (C, 32, 32), or a 1-D float Box
+    :param action_space: Box action space
+    :param lr_schedule: learning rate schedule of the actor and critics
+    :param z1_dim: size of the stochastic latent z1
+    :param z2_dim: size of the deterministic-path latent z2
+    :param feature_dim: size of the encoder's per-frame feature
+    :param hidden_units: hidden layers of every MLP (latent distributions, actor, reward critic)
+    :param n_cosines: cosine features of the IQN tau embedding
+    :param cost_critic_hidden_dim: hidden width of the IQN head
+    :param image_noise: variance of the Gaussian observation likelihood (0.4 in the thesis code: std 0.632)
+    :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss
+    :param cost_positive_weight: extra weight of unsafe (cost > 0) steps in the cost likelihood
+    :param latent_learning_rate: Adam step size of the latent model
+    :param normalize_images: divide uint8 images by 255
+    :param optimizer_class: optimizer of every network
+    :param optimizer_kwargs: extra optimizer keywords
+    """
+
+    latent: LatentModel
+    actor: LatentActor
+    critic: TwinQCritic
+    critic_target: TwinQCritic
+    cost_critic: IQNCostCritic
+    cost_critic_target: IQNCostCritic
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        z1_dim: int = 32,
+        z2_dim: int = 200,
+        feature_dim: int = 200,
+        hidden_units: tuple[int, ...] = (256, 256),
+        n_cosines: int = 64,
+        cost_critic_hidden_dim: int = 512,
+        image_noise: float = 0.4,
+        cost_loss_weight: float = 30.0,
+        cost_positive_weight: float = 100.0,
+        latent_learning_rate: float = 1e-4,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            normalize_images=normalize_images,
+            squash_output=True,
+        )
+        self.z1_dim = z1_dim
+        self.z2_dim = z2_dim
+        self.feature_dim = feature_dim
+        self.hidden_units = tuple(hidden_units)
+        self.n_cosines = n_cosines
+        self.cost_critic_hidden_dim = cost_critic_hidden_dim
+        self.image_noise = image_noise
+        self.cost_loss_weight = cost_loss_weight
+        self.cost_positive_weight = cost_positive_weight
+        self.latent_learning_rate = latent_learning_rate
+        self._build(lr_schedule)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        assert self.observation_space.shape is not None
+        action_dim = int(np.prod(self.action_space.shape))
+        self.latent = LatentModel(
+            tuple(self.observation_space.shape),
+            action_dim,
+            feature_dim=self.feature_dim,
+            z1_dim=self.z1_dim,
+            z2_dim=self.z2_dim,
+            hidden_units=self.hidden_units,
+            image_noise=self.image_noise,
+            cost_loss_weight=self.cost_loss_weight,
+            cost_positive_weight=self.cost_positive_weight,
+        )
+        z_dim = self.latent.z_dim
+        self.actor = LatentActor(z_dim, action_dim, self.hidden_units)
+        self.critic = TwinQCritic(z_dim, action_dim, self.hidden_units)
+        self.critic_target = TwinQCritic(z_dim, action_dim, self.hidden_units)
+        self.critic_target.load_state_dict(self.critic.state_dict())
+        self.cost_critic = IQNCostCritic(z_dim, action_dim, self.n_cosines, self.cost_critic_hidden_dim)
+        self.cost_critic_target = IQNCostCritic(z_dim, action_dim, self.n_cosines, self.cost_critic_hidden_dim)
+        self.cost_critic_target.load_state_dict(self.cost_critic.state_dict())
+        for target in (self.critic_target, self.cost_critic_target):
+            target.requires_grad_(False)
+            target.train(False)
+
+        self.latent_optimizer = self.optimizer_class(
+            self.latent.parameters(), lr=self.latent_learning_rate, **self.optimizer_kwargs
+        )
+        self.actor_optimizer = self.optimizer_class(self.actor.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+        self.critic_optimizer = self.optimizer_class(self.critic.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+        self.cost_critic_optimizer = self.optimizer_class(
+            self.cost_critic.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
+        )
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                z1_dim=self.z1_dim,
+                z2_dim=self.z2_dim,
+                feature_dim=self.feature_dim,
+                hidden_units=self.hidden_units,
+                n_cosines=self.n_cosines,
+                cost_critic_hidden_dim=self.cost_critic_hidden_dim,
+                image_noise=self.image_noise,
+                cost_loss_weight=self.cost_loss_weight,
+                cost_positive_weight=self.cost_positive_weight,
+                latent_learning_rate=self.latent_learning_rate,
+                optimizer_class=self.optimizer_class,
+                optimizer_kwargs=self.optimizer_kwargs,
+                lr_schedule=self._dummy_schedule,
+            )
+        )
+        return data
+
+    def preprocess(self, observations: th.Tensor) -> th.Tensor:
+        """Raw observations (any leading dims, as stored) to floats; uint8 images are scaled to [0, 1]."""
+        return preprocess_obs(observations, self.observation_space, normalize_images=self.normalize_images)  # type: ignore[return-value]
+
+    def initial_state(self, n_envs: int) -> tuple[th.Tensor, th.Tensor]:
+        """Zero filter state (z2, previous action) for ``n_envs`` envs, on the policy's device."""
+        action_dim = int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
+        return th.zeros(n_envs, self.z2_dim, device=self.device), th.zeros(n_envs, action_dim, device=self.device)
+
+    def belief_step(
+        self, observation: th.Tensor, z2_prev: th.Tensor, action_prev: th.Tensor, episode_start: th.Tensor, deterministic: bool
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """
+        One step of the latent filter.
+
+        :param observation: raw observations (n_envs, *obs_shape)
+        :param z2_prev: z2 of the previous step (n_envs, z2_dim)
+        :param action_prev: previous action scaled to [-1, 1] (n_envs, action_dim)
+        :param episode_start: (n_envs,) bool, True where ``observation`` is the first of an episode
+        :param deterministic: use the filter's means instead of samples
+        :return: the belief z = [z1, z2] (n_envs, z_dim) and the new z2 (n_envs, z2_dim)
+        """
+        feature = self.latent.encode(self.preprocess(observation).unsqueeze(1)).squeeze(1)
+        z1, z2 = self.latent.filter_step(feature, z2_prev, action_prev, episode_start, deterministic)
+        return th.cat([z1, z2], dim=-1), z2
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        """Act from a single frame, as at the first step of an episode (no history). Prefer ``predict`` with state."""
+        assert isinstance(observation, th.Tensor)
+        n_envs = observation.shape[0]
+        z2_prev, action_prev = self.initial_state(n_envs)
+        episode_start = th.ones(n_envs, dtype=th.bool, device=self.device)
+        z, _ = self.belief_step(observation, z2_prev, action_prev, episode_start, deterministic)
+        return self.actor(z, deterministic=deterministic)
+
+    def forward(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self._predict(observation, deterministic=deterministic)
+
+    def predict(  # type: ignore[override]
+        self,
+        observation: np.ndarray,
+        state: FilterState | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, FilterState]:
+        """
+        Filter one observation per env into the latent belief and act on it.
+
+        :param observation: (n_envs, *obs_shape) or a single observation
+        :param state: the filter state returned by the previous call; None starts every env afresh
+        :param episode_start: (n_envs,) True where an episode starts (resets that env's filter)
+        :param deterministic: use the filter's means and the actor's mean action
+        :return: actions in the action space's bounds, and the new filter state
+        """
+        self.set_training_mode(False)
+        if isinstance(observation, tuple) and len(observation) == 2 and isinstance(observation[1], dict):
+            raise ValueError(
+                "predict() got an (observation, info) tuple: pass only the observation "
+                "(Gymnasium's `obs, info = env.reset()` vs SB3's `obs = vec_env.reset()`)."
+            )
+        obs_tensor, vectorized_env = self.obs_to_tensor(observation)
+        assert isinstance(obs_tensor, th.Tensor)
+        n_envs = obs_tensor.shape[0]
+        if state is None:
+            z2_prev, action_prev = self.initial_state(n_envs)
+            starts = th.ones(n_envs, dtype=th.bool, device=self.device)
+        else:
+            z2_prev = th.as_tensor(state[0], dtype=th.float32, device=self.device).reshape(n_envs, self.z2_dim)
+            action_prev = th.as_tensor(state[1], dtype=th.float32, device=self.device).reshape(n_envs, -1)
+            flags = np.zeros(n_envs, dtype=bool) if episode_start is None else np.asarray(episode_start, dtype=bool)
+            starts = th.as_tensor(flags.reshape(n_envs), device=self.device)
+        with th.inference_mode():
+            z, z2 = self.belief_step(obs_tensor, z2_prev, action_prev, starts, deterministic)
+            scaled_actions = self.actor(z, deterministic=deterministic)
+        scaled = scaled_actions.cpu().numpy()
+        actions = self.unscale_action(scaled).reshape((-1, *self.action_space.shape))  # type: ignore[misc]
+        new_state = (z2.cpu().numpy(), scaled)
+        if not vectorized_env:
+            actions = actions.squeeze(axis=0)
+        return actions, new_state
+
+    def set_training_mode(self, mode: bool) -> None:
+        """Train or eval mode for the trained networks; the target networks always stay in eval mode."""
+        for module in (self.latent, self.actor, self.critic, self.cost_critic):
+            module.train(mode)
+        self.training = mode

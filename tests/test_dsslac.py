@@ -1,0 +1,232 @@
+"""DSSLAC on tiny envs: learning loop, logging, filter state, save/load and bad input."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.callbacks import EvalCallback
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.logger import configure
+
+from sb3_dsslac import DSSLAC, LagrangeCallback, LatentPolicy, SequenceReplayBuffer
+from tests.synthetic_envs import HazardPointEnv
+
+SMALL_POLICY = dict(z1_dim=4, z2_dim=8, feature_dim=16, hidden_units=(32, 32), n_cosines=8, cost_critic_hidden_dim=32)
+SMALL = dict(
+    buffer_size=2_000,
+    learning_starts=40,
+    latent_pretrain_steps=3,
+    batch_size=8,
+    latent_batch_size=4,
+    sequence_length=3,
+    train_freq=10,
+    gradient_steps=2,
+    n_quantiles=8,
+    policy_kwargs=SMALL_POLICY,
+    seed=0,
+)
+
+
+def small_model(env: gym.Env, **overrides) -> DSSLAC:
+    return DSSLAC("LatentPolicy", env, **{**SMALL, **overrides})
+
+
+@pytest.mark.parametrize("obs_type", ["state", "pixels"])
+def test_learn_logs_every_key(obs_type: str, tmp_path) -> None:
+    model = small_model(HazardPointEnv(obs_type=obs_type))
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(100, log_interval=1)
+    assert isinstance(model.policy, LatentPolicy)
+    assert isinstance(model.replay_buffer, SequenceReplayBuffer)
+    assert model.latent_pretrained
+    assert model._n_updates == 2 * 6  # bursts after steps 50, 60, ..., 100
+    header = (tmp_path / "progress.csv").read_text().splitlines()[0].split(",")
+    expected = {
+        "rollout/ep_cost_mean",
+        "rollout/cost_rate",
+        "train/kl",
+        "train/image_loss",
+        "train/reward_loss",
+        "train/cost_loss",
+        "train/critic_loss",
+        "train/cost_critic_loss",
+        "train/actor_loss",
+        "train/ent_coef",
+        "train/lagrange_multiplier",
+        "train/cost_value",
+        "time/sim_steps",
+    }
+    assert expected <= set(header)
+
+
+def test_pretraining_runs_once_across_resumed_learns(monkeypatch) -> None:
+    model = small_model(HazardPointEnv())
+    calls = []
+    original = model._pretrain_latent
+    monkeypatch.setattr(model, "_pretrain_latent", lambda: calls.append(1) or original())
+    model.learn(60)
+    model.learn(40, reset_num_timesteps=False)
+    assert calls == [1]
+    assert model.num_timesteps == 100
+
+
+def test_warmup_actions_advance_the_training_filter() -> None:
+    model = small_model(HazardPointEnv(), learning_starts=1_000)
+    model.learn(7)
+    z2, previous_action = model._last_filter_state
+    assert z2.shape == (1, SMALL_POLICY["z2_dim"]) and th.count_nonzero(z2) > 0
+    # The filter's previous action is the random action the buffer stored for the last step
+    record = model.replay_buffer
+    assert model._last_episode_starts.tolist() == [False]
+    assert np.abs(previous_action.cpu().numpy()).max() <= 1.0
+    assert record.can_sample()
+
+
+def test_evaluation_leaves_the_training_filter_alone() -> None:
+    model = small_model(HazardPointEnv(obs_type="pixels"))
+    model.learn(50)
+    before = [t.clone() for t in model._last_filter_state]
+    eval_env = HazardPointEnv(obs_type="pixels")
+    _, lengths = evaluate_policy(model, eval_env, n_eval_episodes=2, return_episode_rewards=True)
+    assert lengths == [30, 30]
+    after = model._last_filter_state
+    assert all(th.equal(a, b) for a, b in zip(before, after, strict=True))
+
+
+def test_eval_callback_runs_during_learning(tmp_path) -> None:
+    eval_env = HazardPointEnv(obs_type="pixels")
+    callback = EvalCallback(eval_env, eval_freq=45, n_eval_episodes=1, log_path=str(tmp_path), verbose=0)
+    model = small_model(HazardPointEnv(obs_type="pixels"))
+    model.learn(90, callback=callback)
+    evaluations = np.load(tmp_path / "evaluations.npz")
+    assert evaluations["results"].shape == (2, 1)
+    assert np.all(evaluations["ep_lengths"] == 30)
+
+
+def test_predict_carries_the_filter_state() -> None:
+    model = small_model(HazardPointEnv(obs_type="pixels"))
+    env = HazardPointEnv(obs_type="pixels")
+    obs, _ = env.reset(seed=1)
+    action, state = model.predict(obs, deterministic=True)
+    assert action.shape == (2,) and env.action_space.contains(action.astype(np.float32))
+    assert state[0].shape == (1, SMALL_POLICY["z2_dim"])
+    obs, *_ = env.step(action)
+    continued, _ = model.predict(obs, state=state, episode_start=np.array([False]), deterministic=True)
+    restarted, _ = model.predict(obs, state=state, episode_start=np.array([True]), deterministic=True)
+    fresh, _ = model.predict(obs, deterministic=True)
+    np.testing.assert_allclose(restarted, fresh, rtol=1e-6)
+    assert not np.allclose(continued, restarted)
+
+
+def test_lagrange_callback_raises_multiplier_over_budget_and_lowers_it_under() -> None:
+    always_unsafe = HazardPointEnv()
+    always_unsafe.hazard_radius = 10.0  # every step costs 1, far over a budget of 1 per 30-step episode
+    model = small_model(always_unsafe, cost_limit=1.0, lagrange_learning_rate=1e-2, learning_starts=20, gradient_steps=1)
+    start = model.lagrange_multiplier
+    model.learn(60)
+    assert model.lagrange_multiplier > start
+
+    never_unsafe = HazardPointEnv()
+    never_unsafe.hazard_radius = 0.0
+    model = small_model(never_unsafe, cost_limit=20.0, lagrange_learning_rate=1e-2, learning_starts=20, gradient_steps=1)
+    model.learn(60)
+    assert model.lagrange_multiplier < start
+
+
+def test_learn_attaches_exactly_one_lagrange_callback() -> None:
+    model = small_model(HazardPointEnv())
+    callback = model._init_callback(None)
+    assert sum(isinstance(c, LagrangeCallback) for c in callback.callbacks) == 1
+    mine = LagrangeCallback()
+    callback = model._init_callback([mine])
+    assert [c for c in callback.callbacks if isinstance(c, LagrangeCallback)] == [mine]
+
+
+def test_save_load_round_trip(tmp_path) -> None:
+    env = HazardPointEnv(obs_type="pixels")
+    model = small_model(env)
+    model.learn(60)
+    model.lagrange_raw.fill_(0.7)
+    path = tmp_path / "model.zip"
+    model.save(path)
+    loaded = DSSLAC.load(path, env=HazardPointEnv(obs_type="pixels"))
+
+    obs = np.stack([HazardPointEnv(obs_type="pixels").reset(seed=s)[0] for s in range(3)])
+    z2 = np.random.default_rng(0).normal(size=(3, SMALL_POLICY["z2_dim"])).astype(np.float32)
+    state = (z2, np.zeros((3, 2), np.float32))
+    starts = np.array([True, False, False])
+    expected, expected_state = model.predict(obs, state=state, episode_start=starts, deterministic=True)
+    actual, actual_state = loaded.predict(obs, state=state, episode_start=starts, deterministic=True)
+    np.testing.assert_array_equal(expected, actual)
+    np.testing.assert_array_equal(expected_state[0], actual_state[0])
+
+    assert loaded.lagrange_multiplier == pytest.approx(model.lagrange_multiplier)
+    assert th.equal(loaded.log_ent_coef.cpu(), model.log_ent_coef.cpu())
+    assert loaded.latent_pretrained and loaded.num_timesteps == 60
+    for name in ("latent_optimizer", "actor_optimizer", "critic_optimizer", "cost_critic_optimizer"):
+        saved, restored = getattr(model.policy, name).state_dict(), getattr(loaded.policy, name).state_dict()
+        assert saved["state"].keys() == restored["state"].keys() and len(saved["state"]) > 0
+        for key in saved["state"]:
+            assert th.equal(saved["state"][key]["exp_avg"], restored["state"][key]["exp_avg"])
+    steps = [m.ent_coef_optimizer.state_dict()["state"][0]["step"] for m in (model, loaded)]
+    assert steps[0] == steps[1] > 0
+
+
+def test_replay_buffer_save_load(tmp_path) -> None:
+    model = small_model(HazardPointEnv())
+    model.learn(45)
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    other = small_model(HazardPointEnv())
+    other.load_replay_buffer(tmp_path / "buffer.pkl")
+    assert isinstance(other.replay_buffer, SequenceReplayBuffer)
+    assert other.replay_buffer.nbytes == model.replay_buffer.nbytes
+
+
+class DiscreteHazardEnv(HazardPointEnv):
+    def __init__(self) -> None:
+        super().__init__()
+        self.action_space = spaces.Discrete(4)
+
+
+class DictHazardEnv(HazardPointEnv):
+    def __init__(self) -> None:
+        super().__init__()
+        self.observation_space = spaces.Dict({"state": self.observation_space})
+
+
+def test_bad_spaces_are_rejected_with_the_fix() -> None:
+    with pytest.raises(ValueError, match="continuous Box action space"):
+        small_model(DiscreteHazardEnv())
+    with pytest.raises(ValueError, match="obs_type='pixels' or obs_type='state'"):
+        small_model(DictHazardEnv())
+
+
+def test_image_size_without_architecture_is_rejected() -> None:
+    with pytest.raises(ValueError, match="64"):
+        small_model(HazardPointEnv(obs_type="pixels", size=48))
+
+
+def test_env_without_cost_fails_at_the_first_step() -> None:
+    model = small_model(HazardPointEnv(report_cost=False))
+    with pytest.raises(ValueError, match=r"info\['cost'\]"):
+        model.learn(5)
+
+
+def test_env_without_time_limit_needs_episode_length() -> None:
+    endless = HazardPointEnv()
+    endless.max_episode_steps = None
+    with pytest.raises(ValueError, match="episode_length"):
+        small_model(endless)
+    assert small_model(endless, episode_length=40).cost_budget_per_step == pytest.approx(25.0 / 40)
+    limited = gym.wrappers.TimeLimit(HazardPointEnv(max_episode_steps=1_000), max_episode_steps=20)
+    assert small_model(limited).cost_budget_per_step == pytest.approx(25.0 / 20)
+
+
+def test_nan_loss_stops_training_and_names_the_loss() -> None:
+    model = small_model(HazardPointEnv())
+    model.learn(45)
+    with th.no_grad():
+        next(model.policy.critic.parameters()).fill_(float("nan"))
+    with pytest.raises(RuntimeError, match="critic_loss"):
+        model.train(gradient_steps=1, batch_size=8)
