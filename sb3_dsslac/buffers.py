@@ -1,0 +1,280 @@
+"""Sequence replay buffer for DS-SLAC: every frame is stored once, windows are rebuilt by index arithmetic."""
+
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import BaseBuffer, ReplayBuffer
+from stable_baselines3.common.vec_env import VecNormalize
+
+
+class SequenceBatch(NamedTuple):
+    """
+    A batch of ``B`` windows of ``L = sequence_length`` consecutive transitions of one episode each.
+
+    :param observations: (B, L+1, *obs_shape) frames in the stored dtype (uint8 for images, float32 otherwise)
+    :param actions: (B, L, action_dim) float32 buffer actions (scaled to [-1, 1] by SB3)
+    :param rewards: (B, L) float32
+    :param costs: (B, L) float32, from ``info["cost"]``
+    :param terminated: (B, L) float32, 1.0 where the transition ended its episode by a true termination
+    """
+
+    observations: th.Tensor
+    actions: th.Tensor
+    rewards: th.Tensor
+    costs: th.Tensor
+    terminated: th.Tensor
+
+
+class SequenceReplayBuffer(ReplayBuffer):
+    """
+    Replay buffer of frames stored once, sampled as windows of ``sequence_length`` transitions.
+
+    Each env owns a ring of ``buffer_size // n_envs`` records. Record ``k`` holds frame ``o_k`` and the fields of the
+    transition leaving it (action, reward, cost, terminated). An episode of ``T`` steps uses ``T + 1`` records: its
+    last record holds the final (terminal or truncated) frame and no transition. A window is ``sequence_length + 1``
+    consecutive records of one episode, so windows never cross episode boundaries and episodes shorter than
+    ``sequence_length`` steps give none.
+
+    :param buffer_size: Number of frame slots over all envs (each env gets ``buffer_size // n_envs``)
+    :param observation_space: Box observation space (uint8 spaces are stored as uint8, others as float32)
+    :param action_space: Box action space
+    :param device: PyTorch device of the sampled tensors
+    :param n_envs: Number of parallel environments
+    :param optimize_memory_usage: Must be False: frames are already stored once
+    :param handle_timeout_termination: If True, a time-limit truncation (``info["TimeLimit.truncated"]``)
+        is not a termination
+    :param sequence_length: Number of transitions ``L`` per window (``L + 1`` frames)
+    """
+
+    observations: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    costs: np.ndarray
+    terminated: np.ndarray
+    episode_ids: np.ndarray
+    episode_steps: np.ndarray
+
+    _STORAGE = ("observations", "actions", "rewards", "costs", "terminated", "episode_ids", "episode_steps")
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        sequence_length: int = 10,
+    ) -> None:
+        if not isinstance(observation_space, spaces.Box):
+            raise ValueError(
+                f"SequenceReplayBuffer supports only Box observation spaces (images or vectors), got {observation_space}"
+            )
+        if not isinstance(action_space, spaces.Box):
+            raise ValueError(f"SequenceReplayBuffer supports only Box (continuous) action spaces, got {action_space}")
+        if optimize_memory_usage:
+            raise ValueError(
+                "SequenceReplayBuffer already stores every frame once; optimize_memory_usage=True is not supported"
+            )
+        if sequence_length < 1:
+            raise ValueError(f"sequence_length must be >= 1, got {sequence_length}")
+        # Skip ReplayBuffer.__init__: it would allocate per-transition observations and next_observations
+        BaseBuffer.__init__(self, buffer_size, observation_space, action_space, device, n_envs=n_envs)
+        self.buffer_size = buffer_size // n_envs
+        if self.buffer_size < sequence_length + 1:
+            raise ValueError(
+                f"buffer_size={buffer_size} gives {self.buffer_size} slots per env for n_envs={n_envs}, "
+                f"fewer than the {sequence_length + 1} frames of one window (sequence_length={sequence_length})"
+            )
+        self.optimize_memory_usage = False
+        self.handle_timeout_termination = handle_timeout_termination
+        self.sequence_length = sequence_length
+        self.frame_dtype = np.uint8 if observation_space.dtype == np.uint8 else np.float32
+
+        shape = (self.buffer_size, self.n_envs)
+        self.observations = np.zeros((*shape, *self.obs_shape), dtype=self.frame_dtype)
+        self.actions = np.zeros((*shape, self.action_dim), dtype=np.float32)
+        self.rewards = np.zeros(shape, dtype=np.float32)
+        self.costs = np.zeros(shape, dtype=np.float32)
+        self.terminated = np.zeros(shape, dtype=np.float32)
+        # Episode id (unique per episode, increasing) and step within the episode of each record; -1 / 0 when unwritten
+        self.episode_ids = np.full(shape, -1, dtype=np.int64)
+        self.episode_steps = np.zeros(shape, dtype=np.int64)
+        self._init_counters()
+
+    def _init_counters(self) -> None:
+        self._n_records = np.zeros(self.n_envs, dtype=np.int64)  # records written so far by each env (monotone)
+        self._episode_start = np.ones(self.n_envs, dtype=bool)  # the next `add` of that env opens an episode
+        self._next_episode_id = 0
+        self._n_windows = 0  # number of valid windows currently in the buffer
+        self.pos = 0
+        self.full = False
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by all storage arrays."""
+        return sum(getattr(self, name).nbytes for name in self._STORAGE)
+
+    def reset(self) -> None:
+        """Forget every stored record (the arrays are kept)."""
+        self.episode_ids.fill(-1)
+        self.episode_steps.fill(0)
+        self._init_counters()
+
+    def _windows_valid(self, starts: np.ndarray, envs: np.ndarray, length: int) -> np.ndarray:
+        """Whether records at slots ``starts .. starts + length`` (mod ring) of ``envs`` are steps of one episode."""
+        # ids equal at both ends: one episode; step difference == length: no unwritten slot and no wrap past the head
+        ends = (starts + length) % self.buffer_size
+        same_episode = self.episode_ids[starts, envs] == self.episode_ids[ends, envs]
+        return same_episode & (self.episode_steps[ends, envs] - self.episode_steps[starts, envs] == length)
+
+    def _write_records(self, envs: np.ndarray, frames: np.ndarray, episode_ids: np.ndarray, steps: np.ndarray) -> None:
+        """Append one record (frame, no transition yet) to the ring of each env in ``envs`` (distinct indices)."""
+        slots = self._n_records[envs] % self.buffer_size
+        overwrite = self._n_records[envs] >= self.buffer_size
+        if overwrite.any():
+            # The oldest record leaves the ring, and with it the only window that could still start there
+            self._n_windows -= int(self._windows_valid(slots[overwrite], envs[overwrite], self.sequence_length).sum())
+        self.observations[slots, envs] = frames
+        self.episode_ids[slots, envs] = episode_ids
+        self.episode_steps[slots, envs] = steps
+        self.actions[slots, envs] = 0.0
+        self.rewards[slots, envs] = 0.0
+        self.costs[slots, envs] = 0.0
+        self.terminated[slots, envs] = 0.0
+        self._n_windows += int((steps >= self.sequence_length).sum())
+        self._n_records[envs] += 1
+
+    def add(
+        self,
+        obs: np.ndarray,
+        next_obs: np.ndarray,
+        action: np.ndarray,
+        reward: np.ndarray,
+        done: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """
+        Store one step of every env.
+
+        :param obs: (n_envs, *obs_shape) observations the actions were taken from
+        :param next_obs: (n_envs, *obs_shape) next observations (the terminal observation where ``done``)
+        :param action: (n_envs, action_dim) buffer actions
+        :param reward: (n_envs,) rewards
+        :param done: (n_envs,) episode ends (termination or truncation)
+        :param infos: one dict per env, each with the step cost in ``info["cost"]``
+        """
+        if any("cost" not in info for info in infos):
+            raise ValueError(
+                "SequenceReplayBuffer needs the per-step cost in info['cost'] "
+                "(the safety_envs tasks report it; wrap other envs to add it)"
+            )
+        obs = np.asarray(obs).reshape((self.n_envs, *self.obs_shape))
+        next_obs = np.asarray(next_obs).reshape((self.n_envs, *self.obs_shape))
+        done = np.asarray(done, dtype=bool).reshape(self.n_envs)
+        all_envs = np.arange(self.n_envs)
+
+        # An env also opens an episode when `obs` is not the frame it stored last (e.g. the env was reset
+        # between two `learn` calls): the interrupted episode then ends there like a truncation.
+        current = (self._n_records - 1) % self.buffer_size
+        stored = self.observations[current, all_envs].reshape(self.n_envs, -1)
+        moved = np.any(stored != obs.astype(self.frame_dtype).reshape(self.n_envs, -1), axis=1)
+        starting = np.flatnonzero(self._episode_start | moved)
+        if len(starting) > 0:
+            new_ids = self._next_episode_id + np.arange(len(starting))
+            self._next_episode_id += len(starting)
+            self._write_records(starting, obs[starting], new_ids, np.zeros(len(starting), dtype=np.int64))
+
+        current = (self._n_records - 1) % self.buffer_size
+        timeouts = np.array([info.get("TimeLimit.truncated", False) for info in infos], dtype=bool)
+        terminated = done & ~timeouts if self.handle_timeout_termination else done
+        self.actions[current, all_envs] = np.asarray(action).reshape(self.n_envs, self.action_dim)
+        self.rewards[current, all_envs] = np.asarray(reward).reshape(self.n_envs)
+        self.costs[current, all_envs] = [float(info["cost"]) for info in infos]
+        self.terminated[current, all_envs] = terminated
+        self._write_records(all_envs, next_obs, self.episode_ids[current, all_envs], self.episode_steps[current, all_envs] + 1)
+        self._episode_start = done.copy()
+
+        most_records = int(self._n_records.max())
+        self.full = most_records >= self.buffer_size
+        self.pos = most_records % self.buffer_size
+
+    def can_sample(self) -> bool:
+        """Whether at least one valid window is stored."""
+        return self._n_windows > 0
+
+    def _sample_starts(self, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
+        """Draw ``batch_size`` (start slot, env) pairs uniformly over valid windows, each of shape (batch_size,)."""
+        n_rows = min(int(self._n_records.max()), self.buffer_size)
+        n_candidates = n_rows * self.n_envs
+        # Rejection sampling, sized from the known fraction of valid candidates, for at most two rounds
+        n_draws = int(2 * batch_size * n_candidates / self._n_windows) + 16
+        accepted: list[np.ndarray] = []
+        n_accepted = 0
+        for _ in range(2):
+            if n_draws >= n_candidates or n_accepted >= batch_size:
+                break
+            flat = np.random.randint(0, n_candidates, size=n_draws)
+            flat = flat[self._windows_valid(flat // self.n_envs, flat % self.n_envs, self.sequence_length)]
+            accepted.append(flat)
+            n_accepted += len(flat)
+        if n_accepted < batch_size:
+            # Few valid windows (or bad luck): enumerate them all
+            every = np.arange(n_candidates)
+            valid = every[self._windows_valid(every // self.n_envs, every % self.n_envs, self.sequence_length)]
+            accepted.append(valid[np.random.randint(0, len(valid), size=batch_size - n_accepted)])
+        flat = np.concatenate(accepted)[:batch_size]
+        return flat // self.n_envs, flat % self.n_envs
+
+    def _count_steps(self) -> int:
+        """Number of stored transitions (records followed by a record of the same episode)."""
+        every = np.arange(self.buffer_size * self.n_envs)
+        return int(self._windows_valid(every // self.n_envs, every % self.n_envs, 1).sum())
+
+    def sample(self, batch_size: int, env: VecNormalize | None = None) -> SequenceBatch:  # type: ignore[override]
+        """
+        Sample windows of ``sequence_length`` transitions (``sequence_length + 1`` frames), uniformly over valid windows.
+
+        :param batch_size: Number of windows ``B``
+        :param env: VecNormalize to normalise observations (returned as float32) and rewards, as SB3 does
+        :return: the batch on ``self.device``
+        """
+        if not self.can_sample():
+            raise ValueError(
+                f"Cannot sample: the buffer stores {self._count_steps()} steps but no episode has "
+                f"{self.sequence_length} consecutive stored steps; a window needs sequence_length={self.sequence_length} "
+                f"steps ({self.sequence_length + 1} frames) of one episode, and shorter episodes give no window"
+            )
+        starts, envs = self._sample_starts(batch_size)
+        slots = (starts[:, None] + np.arange(self.sequence_length + 1)) % self.buffer_size  # (B, L+1)
+        envs = envs[:, None]
+        transitions = slots[:, :-1]
+        observations = self._normalize_obs(self.observations[slots, envs], env)
+        rewards = self._normalize_reward(self.rewards[transitions, envs], env)
+        return SequenceBatch(
+            observations=th.as_tensor(observations).to(self.device),
+            actions=th.as_tensor(self.actions[transitions, envs]).to(self.device),
+            rewards=th.as_tensor(rewards).to(self.device),
+            costs=th.as_tensor(self.costs[transitions, envs]).to(self.device),
+            terminated=th.as_tensor(self.terminated[transitions, envs]).to(self.device),
+        )
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickle only the slots written so far, so an early checkpoint is not the size of the full buffer."""
+        state = self.__dict__.copy()
+        n_rows = min(int(self._n_records.max()), self.buffer_size)
+        for name in self._STORAGE:
+            state[name] = state[name][:n_rows]
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        for name in self._STORAGE:
+            stored = state[name]
+            if len(stored) < self.buffer_size:
+                array = np.full((self.buffer_size, *stored.shape[1:]), -1 if name == "episode_ids" else 0, dtype=stored.dtype)
+                array[: len(stored)] = stored
+                setattr(self, name, array)

@@ -1,0 +1,376 @@
+import pickle
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from stable_baselines3 import SAC
+from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from sb3_dsslac.buffers import SequenceBatch, SequenceReplayBuffer
+
+VEC_SPACE = spaces.Box(-np.inf, np.inf, shape=(3,), dtype=np.float32)
+ACT_SPACE = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
+
+
+def frame(env: int, episode: int, step: int) -> np.ndarray:
+    return np.array([env, episode, step], dtype=np.float32)
+
+
+def reward_of(env: int, episode: int, step: int) -> float:
+    return 10_000.0 * env + 100.0 * episode + step
+
+
+def cost_of(env: int, episode: int, step: int) -> float:
+    return 0.5 * step + env
+
+
+class ScriptedEnvs:
+    """Lock-step envs whose frames, actions, rewards and costs encode (env, episode, step)."""
+
+    def __init__(self, plans: list[list[tuple[int, bool, bool]]]) -> None:
+        # plans[e]: episodes of env e as (n_steps, terminated, cut) where `cut` means reset without `done`
+        self.plans = plans
+        self.n_envs = len(plans)
+        self.episode = [0] * self.n_envs
+        self.step_in_episode = [0] * self.n_envs
+        self.records: list[list[tuple[int, int]]] = [[] for _ in plans]  # (episode, step) of each record, in write order
+        self.ends: dict[tuple[int, int], tuple[int, bool]] = {}  # (env, episode) -> (n_steps, terminated)
+
+    def plan(self, env: int) -> tuple[int, bool, bool]:
+        episodes = self.plans[env]
+        return episodes[self.episode[env] % len(episodes)]
+
+    def step(self, buffer: SequenceReplayBuffer) -> None:
+        obs, next_obs, actions, rewards, dones, infos = [], [], [], [], [], []
+        for env in range(self.n_envs):
+            episode, step = self.episode[env], self.step_in_episode[env]
+            length, is_terminated, cut = self.plan(env)
+            if step == 0:
+                self.records[env].append((episode, 0))
+            obs.append(frame(env, episode, step))
+            next_obs.append(frame(env, episode, step + 1))
+            actions.append(frame(env, episode, step) / 1000.0)
+            rewards.append(reward_of(env, episode, step))
+            self.records[env].append((episode, step + 1))
+            ended = step + 1 == length
+            dones.append(ended and not cut)
+            infos.append({"cost": cost_of(env, episode, step), "TimeLimit.truncated": ended and not is_terminated})
+            if ended:
+                self.ends[(env, episode)] = (length, is_terminated and not cut)
+                self.episode[env] += 1
+                self.step_in_episode[env] = 0
+            else:
+                self.step_in_episode[env] += 1
+        buffer.add(np.stack(obs), np.stack(next_obs), np.stack(actions), np.array(rewards), np.array(dones), infos)
+
+    def expected_windows(self, slots: int, length: int) -> set[tuple[int, int, int]]:
+        """(env, episode, first step) of every window the buffer should still hold."""
+        windows = set()
+        for env, records in enumerate(self.records):
+            kept = records[-slots:]
+            for i in range(len(kept) - length):
+                (ep0, s0), (ep1, s1) = kept[i], kept[i + length]
+                if ep0 == ep1 and s1 - s0 == length:
+                    windows.add((env, ep0, s0))
+        return windows
+
+
+def check_window(batch: SequenceBatch, b: int, envs: ScriptedEnvs, length: int) -> tuple[int, int, int]:
+    obs = batch.observations[b].numpy()
+    env, episode, first = (int(v) for v in obs[0])
+    steps = first + np.arange(length + 1)
+    np.testing.assert_array_equal(obs, np.stack([frame(env, episode, s) for s in steps]))
+    np.testing.assert_array_equal(batch.actions[b].numpy(), np.stack([frame(env, episode, s) / 1000.0 for s in steps[:-1]]))
+    np.testing.assert_array_equal(batch.rewards[b].numpy(), [reward_of(env, episode, s) for s in steps[:-1]])
+    np.testing.assert_array_equal(batch.costs[b].numpy(), [cost_of(env, episode, s) for s in steps[:-1]])
+    n_steps, is_terminated = envs.ends.get((env, episode), (-1, False))
+    expected_terminated = [float(is_terminated and s + 1 == n_steps) for s in steps[:-1]]
+    np.testing.assert_array_equal(batch.terminated[b].numpy(), expected_terminated)
+    if expected_terminated[-1]:
+        # The last frame of a terminal window is the terminal observation
+        np.testing.assert_array_equal(obs[-1], frame(env, episode, n_steps))
+    return env, episode, first
+
+
+episode_st = st.tuples(st.integers(1, 9), st.booleans(), st.integers(0, 5).map(lambda x: x == 0))
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    plans=st.lists(st.lists(episode_st, min_size=1, max_size=6), min_size=1, max_size=3),
+    length=st.integers(1, 4),
+    extra_slots=st.integers(0, 20),
+    n_steps=st.integers(1, 80),
+    seed=st.integers(0, 2**16),
+)
+def test_windows_stay_inside_one_episode(plans, length, extra_slots, n_steps, seed):
+    n_envs = len(plans)
+    slots = length + 1 + extra_slots
+    buffer = SequenceReplayBuffer(slots * n_envs, VEC_SPACE, ACT_SPACE, device="cpu", n_envs=n_envs, sequence_length=length)
+    envs = ScriptedEnvs(plans)
+    for _ in range(n_steps):
+        envs.step(buffer)
+    expected = envs.expected_windows(slots, length)
+    assert buffer.can_sample() == bool(expected)
+    if not expected:
+        with pytest.raises(ValueError, match="no episode has"):
+            buffer.sample(4)
+        return
+    np.random.seed(seed)
+    batch = buffer.sample(64)
+    assert batch.observations.shape == (64, length + 1, 3)
+    assert batch.actions.shape == (64, length, 3)
+    assert batch.rewards.shape == batch.costs.shape == batch.terminated.shape == (64, length)
+    assert all(t.dtype == th.float32 for t in batch)
+    sampled = {check_window(batch, b, envs, length) for b in range(64)}
+    assert sampled <= expected
+
+
+def test_sampling_is_uniform_over_windows():
+    # Env 0: one long episode; env 1: many episodes of exactly L steps (one window each, low valid fraction)
+    length = 3
+    envs = ScriptedEnvs([[(200, False, False)], [(length, True, False)]])
+    buffer = SequenceReplayBuffer(2 * 200, VEC_SPACE, ACT_SPACE, device="cpu", n_envs=2, sequence_length=length)
+    for _ in range(120):
+        envs.step(buffer)
+    expected = envs.expected_windows(200, length)
+    np.random.seed(0)
+    # Small batches go through rejection sampling, a huge one through enumerating the valid windows
+    for batches in ([buffer.sample(32) for _ in range(1000)], [buffer.sample(32_000)]):
+        keys = np.concatenate([batch.observations[:, 0].numpy() for batch in batches]).astype(int)
+        _, counts = np.unique(keys, axis=0, return_counts=True)
+        assert len(counts) == len(expected)
+        # Each window ~ Binomial(n, 1/len(expected)); allow 6 standard deviations
+        mean = len(keys) / len(expected)
+        assert np.all(np.abs(counts - mean) < 6 * np.sqrt(mean))
+
+
+def test_windows_overwritten_by_short_episodes_are_gone():
+    length = 4
+    buffer = SequenceReplayBuffer(30, VEC_SPACE, ACT_SPACE, device="cpu", sequence_length=length)
+    envs = ScriptedEnvs([[(10, True, False)] + [(2, True, False)] * 20])
+    for _ in range(10):
+        envs.step(buffer)
+    assert buffer.can_sample()
+    for _ in range(16):  # 8 two-step episodes write 24 records: the first 5 frames of the 10-step episode are lost
+        envs.step(buffer)
+    assert buffer.can_sample()
+    np.random.seed(0)
+    assert {int(s) for s in buffer.sample(200).observations[:, 0, 2]} == {5, 6}
+    for _ in range(2):  # one more: only the frames of steps 8, 9, 10 remain, too few for a window
+        envs.step(buffer)
+    assert not buffer.can_sample()
+    with pytest.raises(ValueError, match="stores 20 steps"):
+        buffer.sample(1)
+
+
+def test_truncation_is_not_termination():
+    length = 2
+    buffer = SequenceReplayBuffer(20, VEC_SPACE, ACT_SPACE, device="cpu", sequence_length=length)
+    envs = ScriptedEnvs([[(2, False, False), (2, True, False)]])
+    for _ in range(4):
+        envs.step(buffer)
+    np.random.seed(0)
+    batch = buffer.sample(50)
+    episodes = batch.observations[:, 0, 1].numpy()
+    assert set(episodes) == {0.0, 1.0}
+    np.testing.assert_array_equal(batch.terminated[episodes == 0].numpy(), 0.0)
+    np.testing.assert_array_equal(batch.terminated[episodes == 1].numpy(), np.tile([0.0, 1.0], ((episodes == 1).sum(), 1)))
+
+    # Without timeout handling a truncation counts as a termination
+    buffer = SequenceReplayBuffer(
+        20, VEC_SPACE, ACT_SPACE, device="cpu", sequence_length=length, handle_timeout_termination=False
+    )
+    envs = ScriptedEnvs([[(2, False, False)]])
+    for _ in range(2):
+        envs.step(buffer)
+    np.testing.assert_array_equal(buffer.sample(5).terminated.numpy(), np.tile([0.0, 1.0], (5, 1)))
+
+
+def test_episode_uses_one_extra_frame():
+    buffer = SequenceReplayBuffer(100, VEC_SPACE, ACT_SPACE, device="cpu", sequence_length=2)
+    envs = ScriptedEnvs([[(5, True, False)]])
+    for _ in range(10):  # two episodes of 5 steps
+        envs.step(buffer)
+    assert buffer.pos == 12
+    assert not buffer.full
+    np.testing.assert_array_equal(buffer.episode_ids[:13].ravel(), [0] * 6 + [1] * 6 + [-1])
+
+
+def test_missing_cost_raises():
+    buffer = SequenceReplayBuffer(20, VEC_SPACE, ACT_SPACE, device="cpu", sequence_length=2)
+    obs = np.zeros((1, 3), dtype=np.float32)
+    with pytest.raises(ValueError, match=r"info\['cost'\]"):
+        buffer.add(obs, obs, np.zeros((1, 3)), np.zeros(1), np.zeros(1), [{}])
+
+
+@pytest.mark.parametrize(
+    ("obs_space", "act_space", "kwargs", "match"),
+    [
+        (spaces.Dict({"a": VEC_SPACE}), ACT_SPACE, {}, "only Box observation"),
+        (VEC_SPACE, spaces.Discrete(3), {}, "only Box"),
+        (
+            VEC_SPACE,
+            ACT_SPACE,
+            {"optimize_memory_usage": True, "handle_timeout_termination": False},
+            "stores every frame once",
+        ),
+        (VEC_SPACE, ACT_SPACE, {"sequence_length": 0}, "sequence_length must be >= 1"),
+        (VEC_SPACE, ACT_SPACE, {"sequence_length": 10, "n_envs": 2}, "fewer than the 11 frames"),
+    ],
+)
+def test_invalid_configuration_raises(obs_space, act_space, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        SequenceReplayBuffer(20, obs_space, act_space, device="cpu", **kwargs)
+
+
+def test_sample_before_enough_data_raises():
+    buffer = SequenceReplayBuffer(20, VEC_SPACE, ACT_SPACE, device="cpu", sequence_length=3)
+    with pytest.raises(ValueError, match="stores 0 steps"):
+        buffer.sample(2)
+    envs = ScriptedEnvs([[(2, True, False)]])
+    for _ in range(4):  # two 2-step episodes: 4 steps, but no 3 consecutive
+        envs.step(buffer)
+    assert not buffer.can_sample()
+    with pytest.raises(ValueError, match=r"stores 4 steps.*sequence_length=3"):
+        buffer.sample(2)
+
+
+def filled_buffer(n_steps: int, slots: int = 40) -> tuple[SequenceReplayBuffer, ScriptedEnvs]:
+    buffer = SequenceReplayBuffer(2 * slots, VEC_SPACE, ACT_SPACE, device="cpu", n_envs=2, sequence_length=3)
+    envs = ScriptedEnvs([[(7, True, False), (4, False, False)], [(9, False, False)]])
+    for _ in range(n_steps):
+        envs.step(buffer)
+    return buffer, envs
+
+
+def assert_same_samples(a: SequenceReplayBuffer, b: SequenceReplayBuffer, seed: int = 3) -> None:
+    np.random.seed(seed)
+    batch_a = a.sample(32)
+    np.random.seed(seed)
+    batch_b = b.sample(32)
+    for x, y in zip(batch_a, batch_b, strict=True):
+        assert th.equal(x, y)
+
+
+@pytest.mark.parametrize("n_steps", [15, 100])  # before and after the ring wraps
+def test_pickle_round_trip(tmp_path, n_steps):
+    buffer, envs = filled_buffer(n_steps)
+    restored = pickle.loads(pickle.dumps(buffer))
+    assert_same_samples(buffer, restored)
+    save_to_pkl(tmp_path / "buffer.pkl", buffer)
+    from_file = load_from_pkl(tmp_path / "buffer.pkl")
+    assert_same_samples(buffer, from_file)
+    # Both keep accepting the same stream
+    twin = ScriptedEnvs(envs.plans)
+    twin.__dict__.update(pickle.loads(pickle.dumps(envs.__dict__)))
+    for _ in range(30):
+        envs.step(buffer)
+        twin.step(from_file)
+    assert_same_samples(buffer, from_file)
+    for name in SequenceReplayBuffer._STORAGE:
+        np.testing.assert_array_equal(getattr(buffer, name), getattr(from_file, name))
+
+
+def test_pickle_of_partly_filled_buffer_is_small():
+    buffer, _ = filled_buffer(5, slots=2000)
+    assert len(pickle.dumps(buffer)) < buffer.nbytes / 20
+
+
+def test_reset_forgets_everything():
+    buffer, _ = filled_buffer(30)
+    buffer.reset()
+    assert not buffer.can_sample() and buffer.pos == 0 and not buffer.full
+    _, envs = filled_buffer(0)
+    for _ in range(30):
+        envs.step(buffer)
+    fresh, _ = filled_buffer(30)
+    assert_same_samples(buffer, fresh)
+
+
+def test_memory_of_image_frames():
+    obs_space = spaces.Box(0, 255, shape=(3, 64, 64), dtype=np.uint8)
+    capacity = 2000
+    buffer = SequenceReplayBuffer(capacity, obs_space, spaces.Box(-1, 1, (2,)), device="cpu", sequence_length=10)
+    assert buffer.observations.dtype == np.uint8
+    assert not hasattr(buffer, "next_observations")
+    assert buffer.nbytes <= 1.05 * capacity * 12288
+
+
+def test_image_frames_are_sampled_as_uint8():
+    obs_space = spaces.Box(0, 255, shape=(3, 8, 8), dtype=np.uint8)
+    buffer = SequenceReplayBuffer(30, obs_space, spaces.Box(-1, 1, (2,)), device="cpu", n_envs=1, sequence_length=2)
+    frames = np.arange(6, dtype=np.uint8)[:, None, None, None] * np.ones((1, 3, 8, 8), dtype=np.uint8)
+    for t in range(5):
+        done = np.array([t == 4])
+        buffer.add(frames[t : t + 1], frames[t + 1 : t + 2], np.zeros((1, 2)), np.zeros(1), done, [{"cost": 0.0}])
+    batch = buffer.sample(20)
+    assert batch.observations.dtype == th.uint8
+    first = batch.observations[:, 0, 0, 0, 0]
+    np.testing.assert_array_equal(batch.observations[:, :, 0, 0, 0].numpy(), first[:, None].numpy() + np.arange(3))
+
+
+class CountingEnv(gym.Env):
+    """Observation = (env id, episode, step); ends by termination every 13 steps or a time limit at 9 (odd episodes)."""
+
+    observation_space = VEC_SPACE
+    action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
+
+    def __init__(self, env_id: int) -> None:
+        self.env_id = env_id
+        self.episode = -1
+        self.t = 0
+
+    def _obs(self) -> np.ndarray:
+        return frame(self.env_id, self.episode, self.t)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        self.episode += 1
+        self.t = 0
+        return self._obs(), {}
+
+    def step(self, action):
+        self.t += 1
+        terminated = self.t == 13
+        truncated = self.episode % 2 == 1 and self.t == 9
+        return self._obs(), float(self.t), terminated, truncated, {"cost": float(self.t % 2)}
+
+
+def assert_consecutive(batch: SequenceBatch) -> None:
+    obs = batch.observations.numpy()
+    np.testing.assert_array_equal(obs[:, :, :2], np.repeat(obs[:, :1, :2], obs.shape[1], axis=1))
+    np.testing.assert_array_equal(obs[:, :, 2], obs[:, :1, 2] + np.arange(obs.shape[1]))
+    np.testing.assert_array_equal(batch.rewards.numpy(), obs[:, 1:, 2])
+    np.testing.assert_array_equal(batch.costs.numpy(), obs[:, 1:, 2] % 2)
+    np.testing.assert_array_equal(batch.terminated.numpy(), obs[:, 1:, 2] == 13)
+
+
+def test_sb3_off_policy_integration(tmp_path):
+    def make_model() -> SAC:
+        env = DummyVecEnv([lambda: CountingEnv(0), lambda: CountingEnv(1)])
+        kwargs = {"sequence_length": 4}
+        return SAC("MlpPolicy", env, buffer_size=400, learning_starts=10_000, replay_buffer_class=SequenceReplayBuffer,
+                   replay_buffer_kwargs=kwargs, device="cpu", seed=0)  # fmt: skip
+
+    model = make_model()
+    buffer = model.replay_buffer
+    assert isinstance(buffer, SequenceReplayBuffer) and buffer.buffer_size == 200
+    model.learn(100)
+    assert_consecutive(buffer.sample(256))
+    model.save_replay_buffer(tmp_path / "rb.pkl")
+
+    other = make_model()
+    other.load_replay_buffer(tmp_path / "rb.pkl")
+    assert other.replay_buffer.device == other.device
+    # The fresh env restarts its episode counter mid-episode of the stored data: windows must not join them
+    other.learn(300)
+    batch = other.replay_buffer.sample(512)
+    assert_consecutive(batch)
+    assert other.replay_buffer.full
