@@ -18,6 +18,8 @@ LIDAR_NUM_BINS = 16
 LIDAR_MAX_DIST = 3.0  # m
 SENSOR_KEYS = ("accelerometer", "velocimeter", "gyro", "magnetometer")
 REWARD_EXCEPTION = -10.0
+# Resting free bodies (vases) sleep below this velocity, far under the 1e-4 m/s vase-velocity cost threshold.
+SLEEP_TOLERANCE = 1e-6
 # Vision tessellation: 16 slices and 6 stacks instead of MuJoCo's 28 and 16 cut the CPU render time by 2-3x.
 RENDER_NUM_SLICES = 16
 RENDER_NUM_STACKS = 6
@@ -53,6 +55,9 @@ class SafetyGymEnv(gym.Env):
     :param render_mode: ``None`` or ``"rgb_array"`` (third-person tracking view for videos)
     :param render_width: width of the ``render()`` image in pixels
     :param render_height: height of the ``render()`` image in pixels
+    :param physics_sleep: let MuJoCo put resting vases to sleep (velocity tolerance 1e-6, below the 1e-4 m/s
+        cost threshold) until something touches them: 3-4x faster physics in Goal2, same costs; the robot never
+        sleeps. ``False`` simulates every body at every substep.
     """
 
     metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 25}  # noqa: RUF012
@@ -69,6 +74,7 @@ class SafetyGymEnv(gym.Env):
         render_mode: str | None = None,
         render_width: int = 256,
         render_height: int = 256,
+        physics_sleep: bool = True,
     ) -> None:
         self.robot_spec = get_robot(robot)
         self.task_spec: TaskSpec = get_task(task, level)
@@ -89,6 +95,9 @@ class SafetyGymEnv(gym.Env):
         self.model.vis.quality.offsamples = 0
         self.model.vis.quality.numslices = RENDER_NUM_SLICES
         self.model.vis.quality.numstacks = RENDER_NUM_STACKS
+        if physics_sleep:
+            self.model.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_SLEEP
+            self.model.opt.sleep_tolerance = SLEEP_TOLERANCE
         self.data = mujoco.MjData(self.model)
         self.sim_dt = self.model.opt.timestep * self.task_spec.frameskip  # s per simulator step
         self.metadata = {**self.metadata, "render_fps": round(1.0 / (self.sim_dt * self.action_repeat))}
@@ -249,7 +258,7 @@ class SafetyGymEnv(gym.Env):
 
     def _move_goal(self, xy: np.ndarray) -> None:
         self._goal_xy = np.array(xy, dtype=np.float64)
-        self.model.body_pos[self.ids.goal_body, :2] = xy
+        self.data.mocap_pos[self.ids.goal_mocap, :2] = xy
 
     def _goal_dist(self) -> float:
         """Planar distance (m) from the robot body origin to the goal centre."""
@@ -279,9 +288,9 @@ class SafetyGymEnv(gym.Env):
 
         self._place_robot(layout["robot"], yaws[0])
         self._move_goal(goal_xy)
-        for i, body in enumerate(self.ids.hazard_bodies):
+        for i in range(spec.hazards_num):
             self._hazards_xy[i] = layout[f"hazard{i}"]
-            self.model.body_pos[body, :2] = self._hazards_xy[i]
+        self.data.mocap_pos[self.ids.hazard_mocaps, :2] = self._hazards_xy
         for i, adr in enumerate(self.ids.vase_qpos):
             yaw = yaws[2 + spec.hazards_num + i]
             self.data.qpos[adr : adr + 2] = layout[f"vase{i}"]
@@ -388,7 +397,7 @@ class SafetyGymEnv(gym.Env):
             self._move_goal(array("goal_xy", (2,)))
         if "hazards_xy" in options:
             self._hazards_xy[:] = array("hazards_xy", self._hazards_xy.shape)
-            self.model.body_pos[self.ids.hazard_bodies, :2] = self._hazards_xy
+            self.data.mocap_pos[self.ids.hazard_mocaps, :2] = self._hazards_xy
         if "vases_xy" in options:
             vases_xy = array("vases_xy", (self.task_spec.vases_num, 2))
             for adr, xy in zip(self.ids.vase_qpos, vases_xy, strict=True):

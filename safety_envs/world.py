@@ -1,7 +1,8 @@
 """MJCF assembly: floor, robot, goal, hazards, vases, light and cameras (SAFETY_GYM_SPEC.md sections 1.1, 6.2, 6.3).
 
 The model is compiled once per env with every object of the task; :mod:`safety_envs.engine` moves the objects at
-reset by editing body positions (static goal and hazards) and free-joint states (vases) instead of recompiling.
+reset instead of recompiling: the goal and hazards are mocap bodies (fixed in the world, placed through
+``data.mocap_pos``) and the vases are free bodies (placed through their joint's qpos).
 """
 
 import xml.etree.ElementTree as ET
@@ -35,7 +36,9 @@ class WorldIds:
     robot_qpos: np.ndarray  # qpos addresses of the robot's root joint(s)
     robot_geom_mask: np.ndarray  # (ngeom,) bool: geoms of the robot's body tree
     goal_body: int
+    goal_mocap: int  # index into data.mocap_pos
     hazard_bodies: np.ndarray  # (n_hazards,)
+    hazard_mocaps: np.ndarray  # (n_hazards,)
     vase_bodies: np.ndarray  # (n_vases,)
     vase_qpos: np.ndarray  # (n_vases,) qpos address of each vase free joint
     vase_dof: np.ndarray  # (n_vases,) dof address of each vase free joint
@@ -112,7 +115,7 @@ def build_xml(robot: RobotSpec, task: TaskSpec, offscreen_size: tuple[int, int])
     # Third-person view for render(): 3 m behind (-y) and 4 m above the robot, world-aligned, following it.
     ET.SubElement(robot_body, "camera", name="track", mode="track", pos="0 -3 4", xyaxes="1 0 0 0 0.8 0.6", fovy="60")
 
-    goal = ET.SubElement(world, "body", name="goal", pos=_fmt((0, 0, GOAL_HEIGHT)))
+    goal = ET.SubElement(world, "body", name="goal", mocap="true", pos=_fmt((0, 0, GOAL_HEIGHT)))
     ET.SubElement(
         goal,
         "geom",
@@ -125,7 +128,7 @@ def build_xml(robot: RobotSpec, task: TaskSpec, offscreen_size: tuple[int, int])
         group=str(GROUP_GOAL),
     )
     for i in range(task.hazards_num):
-        hazard = ET.SubElement(world, "body", name=f"hazard{i}", pos=_fmt((0, 0, HAZARD_HEIGHT)))
+        hazard = ET.SubElement(world, "body", name=f"hazard{i}", mocap="true", pos=_fmt((0, 0, HAZARD_HEIGHT)))
         ET.SubElement(
             hazard,
             "geom",
@@ -175,6 +178,7 @@ def build_world(robot: RobotSpec, task: TaskSpec, offscreen_size: tuple[int, int
     robot_body = body("robot")
     robot_geom_mask = np.isin(model.geom_bodyid, _subtree_bodies(model, robot_body))
     root_joints = np.flatnonzero(model.jnt_bodyid == robot_body)
+    hazard_bodies = np.array([body(f"hazard{i}") for i in range(task.hazards_num)], dtype=np.int64)
     vase_bodies = np.array([body(f"vase{i}") for i in range(task.vases_num)], dtype=np.int64)
     vase_joints = model.body_jntadr[vase_bodies] if task.vases_num else np.zeros(0, dtype=np.int64)
     ids = WorldIds(
@@ -182,7 +186,9 @@ def build_world(robot: RobotSpec, task: TaskSpec, offscreen_size: tuple[int, int
         robot_qpos=model.jnt_qposadr[root_joints].copy(),
         robot_geom_mask=robot_geom_mask,
         goal_body=body("goal"),
-        hazard_bodies=np.array([body(f"hazard{i}") for i in range(task.hazards_num)], dtype=np.int64),
+        goal_mocap=int(model.body_mocapid[body("goal")]),
+        hazard_bodies=hazard_bodies,
+        hazard_mocaps=model.body_mocapid[hazard_bodies].copy(),
         vase_bodies=vase_bodies,
         vase_qpos=model.jnt_qposadr[vase_joints].copy(),
         vase_dof=model.jnt_dofadr[vase_joints].copy(),

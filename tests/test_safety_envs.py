@@ -329,12 +329,26 @@ def test_determinism_byte_exact():
     for a, b in zip(runs[0][0], runs[1][0], strict=True):
         assert a["pixels"].tobytes() == b["pixels"].tobytes() and a["state"].tobytes() == b["state"].tobytes()
     assert runs[0][1] == runs[1][1] and runs[0][2] == runs[1][2]
-    env = make_env("Point", "Goal", 1)
+    env = make_env("Point", "Goal", 2)
     first, _ = env.reset(seed=3)
     env.reset(seed=4)
+    for _ in range(100):  # let resting vases fall asleep: reset must still place and show them anew
+        env.step(np.zeros(2))
     again, _ = env.reset(seed=3)
     assert first.tobytes() == again.tobytes()
     assert not np.array_equal(env.reset(seed=4)[0], first)
+
+
+def test_physics_sleep_keeps_robot_dynamics_and_vase_costs():
+    """Sleeping resting vases changes nothing for the robot away from them, and a pushed vase still costs."""
+    actions = np.random.default_rng(2).uniform(-1, 1, size=(200, 2))
+    runs = []
+    for sleep in (True, False):
+        env = make_env("Point", "Goal", 2, obs_type="state", physics_sleep=sleep)
+        env.reset(seed=0)
+        runs.append([env.step(action)[1] for action in actions])
+        assert env.data.ntree_awake == (1 if sleep else env.model.ntree)  # only the robot is simulated
+    assert runs[0] == runs[1]
 
 
 def test_physics_exception_ends_episode():
