@@ -23,20 +23,23 @@ from stable_baselines3.common.vec_env import SubprocVecEnv  # noqa: E402
 import safety_envs  # noqa: E402
 
 
-def single_env_rate(env_id: str, obs_type: str, steps: int) -> float:
-    """Agent steps per second of one env stepped in this process (resets included)."""
+def single_env_rate(env_id: str, obs_type: str, steps: int) -> tuple[float, float]:
+    """Agent steps per wall-clock second and per CPU second of one env stepped in this process (resets included).
+
+    The CPU-time rate is what one idle core would give; it is less sensitive to other load on the machine.
+    """
     env = gym.make(env_id, obs_type=obs_type)
     env.reset(seed=0)
     env.action_space.seed(0)
     actions = [env.action_space.sample() for _ in range(steps)]
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     for action in actions:
         _, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:
             env.reset()
-    rate = steps / (time.perf_counter() - start)
+    wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
     env.close()
-    return rate
+    return steps / wall, steps / cpu
 
 
 def vec_env_rate(env_id: str, obs_type: str, steps: int, n_envs: int = 2) -> float:
@@ -63,15 +66,19 @@ def main() -> None:
     steps = 200 if args.quick else args.steps
     ids = [env_id for env_id in safety_envs.env_ids() if not args.quick or "Goal1" in env_id]
 
-    print(f"MUJOCO_GL={os.environ.get('MUJOCO_GL')}, {os.cpu_count()} CPUs, {steps} agent steps per cell (action_repeat=2)")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(
+        f"MUJOCO_GL={os.environ.get('MUJOCO_GL')}, LP_NUM_THREADS={os.environ.get('LP_NUM_THREADS')}, "
+        f"{os.cpu_count()} CPUs, load average {load:.1f}, {steps} agent steps per cell (action_repeat=2)"
+    )
     print()
-    print("| id | obs | 1 env (steps/s) | 2 x SubprocVecEnv (steps/s) |")
-    print("|---|---|---:|---:|")
+    print("| id | obs | 1 env (steps/s) | 1 env (steps/CPU-s) | 2 x SubprocVecEnv (steps/s) |")
+    print("|---|---|---:|---:|---:|")
     for env_id in ids:
         for obs_type in ("pixels", "state"):
-            single = single_env_rate(env_id, obs_type, steps)
+            single, single_cpu = single_env_rate(env_id, obs_type, steps)
             vec = vec_env_rate(env_id, obs_type, steps)
-            print(f"| {env_id} | {obs_type} | {single:,.0f} | {vec:,.0f} |", flush=True)
+            print(f"| {env_id} | {obs_type} | {single:,.0f} | {single_cpu:,.0f} | {vec:,.0f} |", flush=True)
 
 
 if __name__ == "__main__":
