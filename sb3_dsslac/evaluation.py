@@ -119,3 +119,60 @@ class CostEvalCallback(EvalCallback):
         if self.callback is not None:
             continue_training = continue_training and self._on_event()
         return continue_training
+
+    def restore(self, log_path: str, max_timesteps: int) -> None:
+        """
+        Take back the evaluations of an earlier run from its ``evaluations.npz`` (the rows at or before
+        ``max_timesteps``), so that a resumed run appends to them and keeps its best-model score.
+
+        :param log_path: the ``evaluations.npz`` written by this callback in the earlier run
+        :param max_timesteps: the agent steps of the checkpoint the run resumes from
+        """
+        with np.load(log_path) as data:
+            keep = data["timesteps"] <= max_timesteps
+            self.evaluations_timesteps = data["timesteps"][keep].tolist()
+            self.evaluations_results = list(data["results"][keep])
+            self.evaluations_length = list(data["ep_lengths"][keep])
+            self.evaluations_costs = list(data["costs"][keep])
+        for rewards, costs in zip(self.evaluations_results, self.evaluations_costs, strict=True):
+            mean_reward, mean_cost = float(np.mean(rewards)), float(np.mean(costs))
+            score = (1, mean_reward) if mean_cost <= self.cost_limit else (0, -mean_cost)
+            if score > self.best_score:
+                self.best_score, self.best_mean_reward = score, mean_reward
+            self.last_mean_reward, self.last_mean_cost = mean_reward, mean_cost
+
+
+# Unconstrained PPO's final (episode reward, episode cost) on the Safety-Gym tasks (As et al., 2022), the reference
+# of the thesis's normalised scores (Eq. 5.1).
+PPO_REFERENCE: dict[str, tuple[float, float]] = {
+    "PointGoal1": (17.476, 76.439),
+    "PointGoal2": (14.748, 206.961),
+    "CarGoal1": (13.039, 65.783),
+    "PointButton1": (18.715, 136.594),
+    "PointPush1": (1.544, 61.822),
+    "DoggoGoal1": (1.086, 83.328),
+}
+# DS-SLAC's normalised (Jr_bar, Jc_bar) in the thesis's Table 5.1 (1M simulator steps; 2M for DoggoGoal1).
+THESIS_DSSLAC_SCORES: dict[str, tuple[float, float]] = {
+    "PointGoal1": (1.237, 0.0),
+    "CarGoal1": (1.555, 0.0),
+    "DoggoGoal1": (0.577, 0.0),
+    "PointGoal2": (0.014, 0.045),
+}
+
+
+def normalised_scores(
+    mean_reward: float, mean_cost: float, ppo_reward: float, ppo_cost: float, cost_limit: float = 25.0
+) -> tuple[float, float]:
+    """
+    The thesis's normalised episode reward and cost (Eq. 5.1) against an unconstrained PPO reference:
+    ``Jr_bar = Jr / Jr_PPO`` and ``Jc_bar = max(0, Jc - d) / max(1e-6, Jc_PPO - d)``.
+
+    :param mean_reward: Jr, the mean undiscounted episode reward
+    :param mean_cost: Jc, the mean episode cost
+    :param ppo_reward: Jr_PPO
+    :param ppo_cost: Jc_PPO
+    :param cost_limit: d, the episode cost budget
+    :return: (Jr_bar, Jc_bar); Jc_bar is 0 for any policy within the budget
+    """
+    return mean_reward / ppo_reward, max(0.0, mean_cost - cost_limit) / max(1e-6, ppo_cost - cost_limit)

@@ -1,0 +1,8 @@
+"""``python -m sb3_dsslac``: see ``sb3_dsslac.cli``."""
+
+import sys
+
+from sb3_dsslac.cli import main
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,211 @@
+"""
+Optuna search for DS-SLAC: maximise the last evaluation's mean episode reward, with the cost budget as an Optuna
+constraint (``trial.set_constraint``: mean eval cost minus budget, feasible when <= 0), multivariate TPE and
+median pruning on the intermediate evaluations. Several processes on one storage share one study.
+"""
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import optuna
+import torch as th
+from optuna.pruners import MedianPruner
+from optuna.samplers import TPESampler
+from optuna.storages import JournalStorage
+from optuna.storages.journal import JournalFileBackend
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_dsslac.cli import action_repeat_of, episode_length_of, make_env, make_eval_env
+from sb3_dsslac.dsslac import DSSLAC
+from sb3_dsslac.evaluation import CostEvalCallback
+from sb3_dsslac.presets import preset_hyperparams
+
+COST_CONSTRAINT = "eval_cost_over_budget"
+
+
+def sample_dsslac_params(trial: optuna.Trial) -> dict[str, Any]:
+    """
+    Sample DSSLAC keywords (rl-zoo3 style). Discounts are searched as ``1 - gamma`` on a log scale, batch sizes as
+    powers of two; the derived values are stored as user attributes of the trial.
+
+    :param trial: the Optuna trial
+    :return: DSSLAC keywords
+    """
+    gamma = 1.0 - trial.suggest_float("one_minus_gamma", 1e-3, 5e-2, log=True)
+    cost_gamma = 1.0 - trial.suggest_float("one_minus_cost_gamma", 1e-3, 2e-2, log=True)
+    batch_size = 2 ** trial.suggest_int("batch_size_pow", 4, 7)
+    latent_batch_size = 2 ** trial.suggest_int("latent_batch_size_pow", 3, 6)
+    params = {
+        "learning_rate": trial.suggest_float("learning_rate", 3e-5, 1e-3, log=True),
+        "latent_learning_rate": trial.suggest_float("latent_learning_rate", 3e-5, 1e-3, log=True),
+        "gamma": gamma,
+        "cost_gamma": cost_gamma,
+        "tau": trial.suggest_float("tau", 1e-3, 2e-2, log=True),
+        "lagrange_learning_rate": trial.suggest_float("lagrange_learning_rate", 1e-5, 1e-2, log=True),
+        "lagrange_init": trial.suggest_float("lagrange_init", 1e-3, 1.0, log=True),
+        "n_quantiles": trial.suggest_categorical("n_quantiles", [16, 32, 64]),
+        "cvar_risk_level": trial.suggest_categorical("cvar_risk_level", [0.25, 0.5, 1.0]),
+        "batch_size": batch_size,
+        "latent_batch_size": latent_batch_size,
+        "sequence_length": trial.suggest_int("sequence_length", 4, 10),
+    }
+    for name in ("gamma", "cost_gamma", "batch_size", "latent_batch_size"):
+        trial.set_user_attr(name, params[name])
+    return params
+
+
+class TrialCostEvalCallback(CostEvalCallback):
+    """
+    ``CostEvalCallback`` that reports each evaluation's mean reward to the trial and stops training when the pruner
+    says so. (Optuna keeps a trial's first constraint value only, so ``objective`` sets it once, at the end.)
+
+    :param trial: the Optuna trial
+    :param eval_env: the evaluation env
+    :param kwargs: the keywords of ``CostEvalCallback``
+    """
+
+    def __init__(self, trial: optuna.Trial, eval_env: gym.Env | VecEnv, **kwargs: Any):
+        super().__init__(eval_env, **kwargs)
+        self.trial = trial
+        self.eval_idx = 0
+        self.is_pruned = False
+
+    def _on_step(self) -> bool:
+        if self.eval_freq <= 0 or self.n_calls % self.eval_freq != 0:
+            return True
+        continue_training = super()._on_step()
+        self.eval_idx += 1
+        self.trial.report(self.last_mean_reward, self.eval_idx)
+        if self.trial.should_prune():
+            self.is_pruned = True
+            return False
+        return continue_training
+
+
+@dataclass
+class TuneSpec:
+    """
+    What each trial trains and how it is judged.
+
+    :param env: env id (see ``make_env``)
+    :param sim_steps: simulator steps per trial
+    :param preset: hyperparameters under the sampled ones ("thesis" or "cpu")
+    :param hyperparams: fixed DSSLAC keywords on top of the preset and the sampled ones (a fixed key is not searched:
+        its sampled value is ignored)
+    :param obs_type: "pixels" or "state" (None: the env's default)
+    :param n_evaluations: evaluations per trial, evenly spaced (the pruner's steps)
+    :param eval_episodes: episodes per evaluation
+    :param device: torch device
+    :param threads: torch CPU threads (None: torch's default)
+    """
+
+    env: str
+    sim_steps: int
+    preset: str = "thesis"
+    hyperparams: dict[str, Any] = field(default_factory=dict)
+    obs_type: str | None = None
+    n_evaluations: int = 4
+    eval_episodes: int = 5
+    device: str = "auto"
+    threads: int | None = None
+
+
+def objective(trial: optuna.Trial, spec: TuneSpec) -> float:
+    """Train one sampled configuration; return the last evaluation's mean reward (the constraint is set on the trial)."""
+    if spec.threads is not None:
+        th.set_num_threads(spec.threads)
+    env = make_env(spec.env, spec.obs_type)
+    hyperparams = preset_hyperparams(spec.preset, {**sample_dsslac_params(trial), **spec.hyperparams})
+    hyperparams.setdefault("episode_length", episode_length_of(env))
+    agent_steps = max(spec.sim_steps // action_repeat_of(env), 1)
+    eval_env = make_eval_env(spec.env, seed=trial.number, obs_type=spec.obs_type)
+    model = DSSLAC("LatentPolicy", env, device=spec.device, **hyperparams)
+    callback = TrialCostEvalCallback(
+        trial,
+        eval_env,
+        cost_limit=model.cost_limit,
+        n_eval_episodes=spec.eval_episodes,
+        eval_freq=max(agent_steps // spec.n_evaluations, 1),
+        deterministic=True,
+        verbose=0,
+    )
+    try:
+        model.learn(agent_steps, callback=callback)
+    except (AssertionError, ValueError, RuntimeError) as error:  # diverged (NaN) or an invalid combination
+        raise optuna.TrialPruned(f"training failed: {error}") from error
+    finally:
+        env.close()
+        eval_env.close()
+    if callback.evaluations_costs:
+        trial.set_user_attr("eval_mean_costs", [float(np.mean(costs)) for costs in callback.evaluations_costs])
+        trial.set_constraint(COST_CONSTRAINT, callback.last_mean_cost - callback.cost_limit)
+    if callback.is_pruned:
+        raise optuna.TrialPruned(f"pruned after evaluation {callback.eval_idx}")
+    if not np.isfinite(callback.last_mean_reward):
+        raise optuna.TrialPruned("no evaluation finished: raise --timesteps or --n-evaluations")
+    return float(callback.last_mean_reward)
+
+
+def make_storage(storage: str | None) -> str | JournalStorage | None:
+    """
+    ``None`` (in memory), a journal file (``*.log`` / ``*.journal``: several processes on one machine or a shared
+    file system) or an RDB URL (``sqlite:///study.db``, ``postgresql://user:password@host/db`` for several machines).
+    """
+    if storage is not None and storage.endswith((".log", ".journal")):
+        return JournalStorage(JournalFileBackend(storage))
+    return storage
+
+
+def tune(
+    spec: TuneSpec,
+    n_trials: int,
+    storage: str | None = None,
+    study_name: str = "dsslac",
+    n_startup_trials: int = 5,
+    sampler_seed: int | None = None,
+    show_progress_bar: bool = True,
+) -> optuna.Study:
+    """
+    Run ``n_trials`` trials in this process on the study ``study_name`` (created or joined: ``load_if_exists``).
+
+    :param spec: what each trial trains
+    :param n_trials: trials of this process
+    :param storage: see ``make_storage``
+    :param study_name: the study's name in the storage
+    :param n_startup_trials: random trials before TPE, and completed trials before the pruner prunes
+    :param sampler_seed: seed of TPE (leave None when several workers share the study, or they sample alike)
+    :param show_progress_bar: Optuna's progress bar over this process's trials
+    :return: the study
+    """
+    study = optuna.create_study(
+        study_name=study_name,
+        storage=make_storage(storage),
+        sampler=TPESampler(n_startup_trials=n_startup_trials, seed=sampler_seed, multivariate=True),
+        pruner=MedianPruner(n_startup_trials=n_startup_trials, n_warmup_steps=spec.n_evaluations // 3),
+        direction="maximize",
+        load_if_exists=True,
+    )
+    study.set_user_attr("env", spec.env)
+    study.set_user_attr("sim_steps_per_trial", spec.sim_steps)
+    study.optimize(
+        lambda trial: objective(trial, spec), n_trials=n_trials, gc_after_trial=True, show_progress_bar=show_progress_bar
+    )
+    return study
+
+
+def summarize_study(study: optuna.Study) -> str:
+    """Trial counts and the best feasible trial (the highest reward with mean eval cost within the budget)."""
+    states = [trial.state for trial in study.trials]
+    counts = ", ".join(f"{state.name.lower()} {states.count(state)}" for state in optuna.trial.TrialState if state in states)
+    lines = [f"study {study.study_name!r}: {len(study.trials)} trials ({counts})"]
+    try:
+        best = study.best_trial
+    except ValueError:
+        lines.append("no feasible trial yet (every finished trial's mean eval cost is over the budget)")
+    else:
+        over = best.constraints[COST_CONSTRAINT]
+        lines.append(f"best feasible trial #{best.number}: eval reward {best.value:.3f}, cost - budget {over:.2f}")
+        lines += [f"  {name}: {value}" for name, value in best.params.items()]
+    return "\n".join(lines)
