@@ -403,6 +403,11 @@ class SafetyGymEnv(gym.Env):
             for adr, xy in zip(self.ids.vase_qpos, vases_xy, strict=True):
                 self.data.qpos[adr : adr + 2] = xy
 
+    @property
+    def max_episode_steps(self) -> int:
+        """Agent steps per episode: the task's simulator steps divided by the action repeat (500 for the thesis setting)."""
+        return -(-self.task_spec.num_steps // self.action_repeat)
+
     # ------------------------------------------------------------------ positions (world frame, m)
     @property
     def robot_xy(self) -> np.ndarray:

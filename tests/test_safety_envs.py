@@ -281,8 +281,10 @@ def test_episode_is_500_agent_steps_of_1000_sim_steps():
         assert truncated == (step == 500)
         assert info["sim_steps"] == 2 * step
     assert obs.shape == (64, 64, 3)
+    assert env.unwrapped.max_episode_steps == 500
     env.close()
     raw = make_env("Car", "Goal", 2, obs_type="state", action_repeat=1)
+    assert raw.max_episode_steps == 1000
     raw.reset(seed=0)
     ends = [raw.step(np.zeros(2))[3] for _ in range(1000)]
     assert ends[-1] and not any(ends[:-1]) and raw.sim_steps == 1000
