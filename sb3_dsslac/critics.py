@@ -93,3 +93,31 @@ def quantile_huber_loss(current_quantiles: Tensor, target_quantiles: Tensor, tau
     huber = F.huber_loss(delta, torch.zeros_like(delta), reduction="none", delta=kappa)
     weight = (taus.unsqueeze(2) - (delta.detach() < 0).to(delta.dtype)).abs()
     return (weight * huber / kappa).sum(dim=1).mean()
+
+
+class MeanCostCritic(nn.Module):
+    """
+    Safe SLAC's expectation critic of the discounted cost return, ``Q_c(z, a)``: an MLP with LeakyReLU(0.2) hidden
+    layers and a LeakyReLU(0.01) output (costs are non-negative), its output bias starting at ``initial_value``.
+
+    It answers every quantile fraction with the same expectation, so it plugs in where ``IQNCostCritic`` does.
+
+    :param z_dim: latent size
+    :param action_dim: action size
+    :param hidden_units: hidden layers
+    :param initial_value: initial output bias, e.g. the discounted per-episode budget (9.184 in Safe SLAC)
+    """
+
+    def __init__(
+        self, z_dim: int, action_dim: int, hidden_units: tuple[int, ...] = (256, 256), initial_value: float = 0.0
+    ) -> None:
+        super().__init__()
+        self.q = build_mlp(z_dim + action_dim, 1, hidden_units, partial(nn.LeakyReLU, 0.2), partial(nn.LeakyReLU, 0.01))
+        init_weights(self)
+        output_layer = self.q[-2]
+        assert isinstance(output_layer, nn.Linear)
+        nn.init.constant_(output_layer.bias, initial_value)
+
+    def forward(self, z: Tensor, actions: Tensor, taus: Tensor) -> Tensor:
+        """Latents (B, Z), actions (B, A), fractions (B, N) -> the expected cost return repeated N times, (B, N)."""
+        return self.q(torch.cat([z, actions], dim=-1)).expand(-1, taus.shape[1])

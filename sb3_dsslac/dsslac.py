@@ -18,7 +18,14 @@ from tqdm.auto import tqdm
 
 from sb3_dsslac.buffers import SequenceReplayBuffer
 from sb3_dsslac.critics import quantile_huber_loss, sample_taus
-from sb3_dsslac.lagrange import LagrangeCallback, cost_from_info, inverse_softplus, softplus
+from sb3_dsslac.lagrange import (
+    LAGRANGE_RULES,
+    LagrangeCallback,
+    cost_from_info,
+    inverse_softplus,
+    sgd_lagrange_step,
+    softplus,
+)
 from sb3_dsslac.policies import LatentPolicy
 
 SelfDSSLAC = TypeVar("SelfDSSLAC", bound="DSSLAC")
@@ -86,8 +93,15 @@ class DSSLAC(OffPolicyAlgorithm):
     :param cost_limit: cost budget per episode (Safety-Gym: 25 per 1000 simulator steps)
     :param episode_length: agent steps per episode, to turn the budget into a per-step budget for the multiplier;
         None reads the env's time limit
+    :param lagrange: the multiplier's update rule: "sgd" (the thesis's, per agent step from the real cost), "episode"
+        (SGD once per finished episode), "pid" (PID Lagrangian on episode costs), "critic" (off-policy, from the cost
+        critic's estimate against the discounted per-step budget, every actor-critic update; for study)
     :param lagrange_init: initial Lagrange multiplier
     :param lagrange_learning_rate: SGD step size of the multiplier's raw (pre-softplus) parameter
+    :param pid_kp: proportional gain of the "pid" rule (multiplier per unit of episode cost over the budget)
+    :param pid_ki: integral gain of the "pid" rule
+    :param pid_kd: derivative gain of the "pid" rule
+    :param cost_critic: "iqn" (DS-SLAC's distributional critic) or "mean" (Safe SLAC's expectation critic)
     :param n_quantiles: N = N' = K, the quantile fractions sampled per update by the IQN critic and the actor
     :param cvar_risk_level: beta in (0, 1]: the actor's K fractions are drawn from U(1 - beta, 1); 1.0 is the mean
     :param max_grad_norm: gradient-norm clip of the latent model and the critics
@@ -130,8 +144,13 @@ class DSSLAC(OffPolicyAlgorithm):
         target_entropy: str | float = "auto",
         cost_limit: float = 25.0,
         episode_length: int | None = None,
+        lagrange: str = "sgd",
         lagrange_init: float = 0.02,
         lagrange_learning_rate: float = 2e-4,
+        pid_kp: float = 0.05,
+        pid_ki: float = 0.005,
+        pid_kd: float = 0.02,
+        cost_critic: str = "iqn",
         n_quantiles: int = 64,
         cvar_risk_level: float = 1.0,
         max_grad_norm: float = 40.0,
@@ -179,8 +198,11 @@ class DSSLAC(OffPolicyAlgorithm):
         self.target_entropy = target_entropy
         self.cost_limit = cost_limit
         self.episode_length = episode_length
+        self.lagrange = lagrange
         self.lagrange_init = lagrange_init
         self.lagrange_learning_rate = lagrange_learning_rate
+        self.pid_gains = (pid_kp, pid_ki, pid_kd)
+        self.cost_critic = cost_critic
         self.n_quantiles = n_quantiles
         self.cvar_risk_level = cvar_risk_level
         self.max_grad_norm = max_grad_norm
@@ -193,6 +215,7 @@ class DSSLAC(OffPolicyAlgorithm):
         )
         # Run state that is saved with the model (so that resuming never repeats the pre-training)
         self.latent_pretrained = False
+        self.pid_state = [0.0, 0.0]  # integral, previous episode cost
         self.action_repeat = 1
         self.total_cost = 0.0
         # Rollout state, not saved: the training envs' filter state and running episode costs
@@ -212,6 +235,10 @@ class DSSLAC(OffPolicyAlgorithm):
                 )
         if not 0.0 < cvar_risk_level <= 1.0:
             raise ValueError(f"cvar_risk_level must be in (0, 1], got {cvar_risk_level}")
+        if lagrange not in LAGRANGE_RULES:
+            raise ValueError(f"Unknown lagrange rule {lagrange!r}; choose one of {', '.join(LAGRANGE_RULES)}")
+        if self.episode_length is not None:
+            self.policy_kwargs.update(cost_critic=cost_critic, cost_critic_initial_value=self.discounted_cost_budget)
         if _init_setup_model:
             self._setup_model()
 
@@ -235,6 +262,12 @@ class DSSLAC(OffPolicyAlgorithm):
         """The episode budget spread over the agent steps of an episode (25 / 500 = 0.05 for the thesis setting)."""
         assert self.episode_length is not None
         return self.cost_limit / self.episode_length
+
+    @property
+    def discounted_cost_budget(self) -> float:
+        """The per-step budget discounted over an episode with ``cost_gamma``: 9.184 for the thesis setting."""
+        assert self.episode_length is not None
+        return self.cost_budget_per_step * (1.0 - self.cost_gamma**self.episode_length) / (1.0 - self.cost_gamma)
 
     @property
     def lagrange_multiplier(self) -> float:
@@ -294,9 +327,7 @@ class DSSLAC(OffPolicyAlgorithm):
                 callback = [LagrangeCallback(), callback]
         return super()._init_callback(callback, progress_bar)
 
-    def _sample_action(
-        self, learning_starts: int, action_noise: Any = None, n_envs: int = 1
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def _sample_action(self, learning_starts: int, action_noise: Any = None, n_envs: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """
         Advance the training envs' latent filter on the last observation and act: ``tanh(N(0, 2^2))`` random actions
         during the warm-up (they advance the filter too), the stochastic actor afterwards.
@@ -412,7 +443,11 @@ class DSSLAC(OffPolicyAlgorithm):
         policy.critic_optimizer.step()
 
         taus = sample_taus(n, self.n_quantiles, self.device)
-        cost_critic_loss = quantile_huber_loss(policy.cost_critic(z, actions, taus), target_quantiles, taus)
+        current_quantiles = policy.cost_critic(z, actions, taus)
+        if self.cost_critic == "mean":
+            cost_critic_loss = F.mse_loss(current_quantiles[:, :1], target_quantiles[:, :1])
+        else:
+            cost_critic_loss = quantile_huber_loss(current_quantiles, target_quantiles, taus)
         self._check_finite("cost_critic_loss", cost_critic_loss)
         policy.cost_critic_optimizer.zero_grad(set_to_none=True)
         cost_critic_loss.backward()
@@ -439,9 +474,23 @@ class DSSLAC(OffPolicyAlgorithm):
             "critic_loss": critic_loss.detach(),
             "cost_critic_loss": cost_critic_loss.detach(),
             "actor_loss": actor_loss.detach(),
-            "cost_value": cost_value.detach().mean(),
+            "cost_cvar": cost_value.detach().mean(),
             "ent_coef": ent_coef.detach().reshape(()),
         }
+        if self.cvar_risk_level < 1.0:
+            with th.no_grad():
+                neutral_taus = sample_taus(n, self.n_quantiles, self.device)
+                stats["cost_value"] = policy.cost_critic(z, pi_actions.detach(), neutral_taus).mean()
+        else:
+            stats["cost_value"] = stats["cost_cvar"]
+        if self.lagrange == "critic":
+            raw = sgd_lagrange_step(
+                float(self.lagrange_raw.item()),
+                float(stats["cost_cvar"]),
+                self.discounted_cost_budget,
+                self.lagrange_learning_rate,
+            )
+            self.lagrange_raw.fill_(raw)
         if self.ent_coef_optimizer is not None:
             ent_coef_loss = -(self.log_ent_coef * (log_prob.detach() + self.target_entropy)).mean()
             self._check_finite("ent_coef_loss", ent_coef_loss)

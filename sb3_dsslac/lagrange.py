@@ -57,24 +57,69 @@ def sgd_lagrange_step(raw: float, cost: float, budget_per_step: float, learning_
     return raw + learning_rate * sigmoid / multiplier * (cost - budget_per_step)
 
 
+def pid_lagrange_step(
+    state: list[float], episode_cost: float, cost_limit: float, kp: float, ki: float, kd: float
+) -> tuple[float, list[float]]:
+    """
+    One update of the PID Lagrangian (Stooke, Achiam and Abbeel, 2020) from a finished episode's cost.
+
+    :param state: ``[integral, previous episode cost]``
+    :param episode_cost: total cost of the finished episode
+    :param cost_limit: the episode budget
+    :param kp: proportional gain (per unit of episode cost over the budget)
+    :param ki: integral gain
+    :param kd: derivative gain (only rising costs push the multiplier up)
+    :return: the multiplier (>= 0) and the new state
+    """
+    integral, previous_cost = state
+    error = episode_cost - cost_limit
+    integral = max(0.0, integral + ki * error)
+    derivative = max(0.0, episode_cost - previous_cost)
+    return max(0.0, kp * error + integral + kd * derivative), [integral, episode_cost]
+
+
+# Multipliers below this are stored as this (softplus never reaches 0)
+MIN_MULTIPLIER = 1e-8
+
+LAGRANGE_RULES = ("sgd", "episode", "pid", "critic")
+
+
 class LagrangeCallback(BaseCallback):
     """
     Update the model's Lagrange multiplier on-policy from the real costs of its training envs.
 
-    After every agent step, and only once the random warm-up is over (as in the reference), each training
-    env's ``info["cost"]`` moves the multiplier up when it exceeds the per-step budget
-    (``cost_limit / episode_length``) and down otherwise. ``DSSLAC.learn`` attaches this callback itself.
+    Only once the random warm-up is over (as in the reference), following ``model.lagrange``:
+
+    - ``"sgd"`` (default, the thesis rule): after every agent step, each env's ``info["cost"]`` moves the multiplier
+      up when it exceeds the per-step budget (``cost_limit / episode_length``) and down otherwise;
+    - ``"episode"``: the same SGD rule once per finished episode, from its total cost against ``cost_limit``;
+    - ``"pid"``: a PID Lagrangian on each finished episode's cost against ``cost_limit``;
+    - ``"critic"``: nothing here; ``DSSLAC.train`` drives the multiplier from the cost critic.
+
+    ``DSSLAC.learn`` attaches this callback itself.
     """
 
     def _on_step(self) -> bool:
         model = self.model
-        if model.num_timesteps <= model.learning_starts:
+        if model.num_timesteps <= model.learning_starts or model.lagrange == "critic":
             return True
+        costs = np.array([cost_from_info(info) for info in self.locals["infos"]])
+        # The model adds this step's cost to its running episode costs after the callbacks
+        finished = [float(model._episode_costs[i] + costs[i]) for i in np.flatnonzero(self.locals["dones"])]
+
         raw = float(model.lagrange_raw.item())
-        for info in self.locals["infos"]:
-            raw = sgd_lagrange_step(raw, cost_from_info(info), model.cost_budget_per_step, model.lagrange_learning_rate)
+        if model.lagrange == "sgd":
+            for cost in costs:
+                raw = sgd_lagrange_step(raw, float(cost), model.cost_budget_per_step, model.lagrange_learning_rate)
+        elif model.lagrange == "episode":
+            for cost in finished:
+                raw = sgd_lagrange_step(raw, cost, model.cost_limit, model.lagrange_learning_rate)
+        else:
+            for cost in finished:
+                multiplier, model.pid_state = pid_lagrange_step(model.pid_state, cost, model.cost_limit, *model.pid_gains)
+                raw = inverse_softplus(max(multiplier, MIN_MULTIPLIER))
         if not np.isfinite(raw):
-            raise RuntimeError("The Lagrange multiplier update produced a non-finite value")
+            raise RuntimeError(f"The Lagrange multiplier's {model.lagrange!r} update produced a non-finite value")
         with th.no_grad():
             model.lagrange_raw.fill_(raw)
         return True

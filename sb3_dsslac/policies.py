@@ -10,7 +10,7 @@ from stable_baselines3.common.preprocessing import preprocess_obs
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 
 from sb3_dsslac.actor import LatentActor
-from sb3_dsslac.critics import IQNCostCritic, TwinQCritic
+from sb3_dsslac.critics import IQNCostCritic, MeanCostCritic, TwinQCritic
 from sb3_dsslac.latent import LatentModel
 
 # Filter state carried through ``predict``: (z2 (n_envs, z2_dim), previous action scaled to [-1, 1] (n_envs, action_dim))
@@ -33,7 +33,9 @@ class LatentPolicy(BasePolicy):
     :param feature_dim: size of the encoder's per-frame feature
     :param hidden_units: hidden layers of every MLP (latent distributions, actor, reward critic)
     :param n_cosines: cosine features of the IQN tau embedding
+    :param cost_critic: "iqn" (DS-SLAC's implicit-quantile critic) or "mean" (Safe SLAC's expectation critic)
     :param cost_critic_hidden_dim: hidden width of the IQN head
+    :param cost_critic_initial_value: initial output of the "mean" critic (Safe SLAC: the discounted budget)
     :param image_noise: variance of the Gaussian observation likelihood (0.4 in the thesis code: std 0.632)
     :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss
     :param cost_positive_weight: extra weight of unsafe (cost > 0) steps in the cost likelihood
@@ -47,8 +49,8 @@ class LatentPolicy(BasePolicy):
     actor: LatentActor
     critic: TwinQCritic
     critic_target: TwinQCritic
-    cost_critic: IQNCostCritic
-    cost_critic_target: IQNCostCritic
+    cost_critic: IQNCostCritic | MeanCostCritic
+    cost_critic_target: IQNCostCritic | MeanCostCritic
 
     def __init__(
         self,
@@ -60,7 +62,9 @@ class LatentPolicy(BasePolicy):
         feature_dim: int = 200,
         hidden_units: tuple[int, ...] = (256, 256),
         n_cosines: int = 64,
+        cost_critic: str = "iqn",
         cost_critic_hidden_dim: int = 512,
+        cost_critic_initial_value: float = 0.0,
         image_noise: float = 0.4,
         cost_loss_weight: float = 30.0,
         cost_positive_weight: float = 100.0,
@@ -82,7 +86,11 @@ class LatentPolicy(BasePolicy):
         self.feature_dim = feature_dim
         self.hidden_units = tuple(hidden_units)
         self.n_cosines = n_cosines
+        if cost_critic not in ("iqn", "mean"):
+            raise ValueError(f"cost_critic must be 'iqn' (DS-SLAC) or 'mean' (Safe SLAC), got {cost_critic!r}")
+        self.cost_critic_type = cost_critic
         self.cost_critic_hidden_dim = cost_critic_hidden_dim
+        self.cost_critic_initial_value = cost_critic_initial_value
         self.image_noise = image_noise
         self.cost_loss_weight = cost_loss_weight
         self.cost_positive_weight = cost_positive_weight
@@ -108,8 +116,7 @@ class LatentPolicy(BasePolicy):
         self.critic = TwinQCritic(z_dim, action_dim, self.hidden_units)
         self.critic_target = TwinQCritic(z_dim, action_dim, self.hidden_units)
         self.critic_target.load_state_dict(self.critic.state_dict())
-        self.cost_critic = IQNCostCritic(z_dim, action_dim, self.n_cosines, self.cost_critic_hidden_dim)
-        self.cost_critic_target = IQNCostCritic(z_dim, action_dim, self.n_cosines, self.cost_critic_hidden_dim)
+        self.cost_critic, self.cost_critic_target = (self._make_cost_critic(z_dim, action_dim) for _ in range(2))
         self.cost_critic_target.load_state_dict(self.cost_critic.state_dict())
         for target in (self.critic_target, self.cost_critic_target):
             target.requires_grad_(False)
@@ -124,6 +131,11 @@ class LatentPolicy(BasePolicy):
             self.cost_critic.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
         )
 
+    def _make_cost_critic(self, z_dim: int, action_dim: int) -> IQNCostCritic | MeanCostCritic:
+        if self.cost_critic_type == "mean":
+            return MeanCostCritic(z_dim, action_dim, self.hidden_units, self.cost_critic_initial_value)
+        return IQNCostCritic(z_dim, action_dim, self.n_cosines, self.cost_critic_hidden_dim)
+
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
         data.update(
@@ -133,7 +145,9 @@ class LatentPolicy(BasePolicy):
                 feature_dim=self.feature_dim,
                 hidden_units=self.hidden_units,
                 n_cosines=self.n_cosines,
+                cost_critic=self.cost_critic_type,
                 cost_critic_hidden_dim=self.cost_critic_hidden_dim,
+                cost_critic_initial_value=self.cost_critic_initial_value,
                 image_noise=self.image_noise,
                 cost_loss_weight=self.cost_loss_weight,
                 cost_positive_weight=self.cost_positive_weight,
