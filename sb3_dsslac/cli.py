@@ -436,7 +436,9 @@ def evaluate(
         import imageio
 
         Path(video).parent.mkdir(parents=True, exist_ok=True)
-        writer = imageio.get_writer(str(video), fps=env.metadata.get("render_fps", 25))
+        fps = env.metadata.get("render_fps") or 25
+        timing = {"duration": 1000 / fps, "loop": 0} if str(video).endswith(".gif") else {"fps": fps}
+        writer = imageio.get_writer(str(video), **timing)
     rewards, costs, lengths = np.zeros(episodes), np.zeros(episodes), np.zeros(episodes, dtype=int)
     try:
         for episode in tqdm(range(episodes), desc="episodes"):
