@@ -1,0 +1,92 @@
+"""Optuna search: the sampler, pruning with the cost constraint, storages, and two workers sharing one study."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import optuna
+import pytest
+import torch as th
+from optuna.storages import JournalStorage
+
+from sb3_dsslac import DSSLAC
+from sb3_dsslac.hpo import COST_CONSTRAINT, TuneSpec, make_storage, objective, sample_dsslac_params, tune
+from tests.synthetic_envs import HazardPointEnv
+from tests.test_cli import TINY_ENV, TINY_FLAGS
+from tests.test_dsslac import SMALL_POLICY
+
+TINY = dict(
+    learning_starts=20, latent_pretrain_steps=2, train_freq=10, gradient_steps=1, buffer_size=500, policy_kwargs=SMALL_POLICY
+)
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    threads = th.get_num_threads()
+    th.set_num_threads(1)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    yield
+    th.set_num_threads(threads)
+
+
+def test_sampler_gives_valid_dsslac_keywords() -> None:
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0), direction="maximize")
+    for _ in range(5):
+        trial = study.ask()
+        params = sample_dsslac_params(trial)
+        assert 0.95 <= params["gamma"] < 1.0 and 0.98 <= params["cost_gamma"] < 1.0
+        assert params["batch_size"] in (16, 32, 64, 128) and params["latent_batch_size"] in (8, 16, 32, 64)
+        assert trial.user_attrs["gamma"] == params["gamma"]
+        model = DSSLAC("LatentPolicy", HazardPointEnv(), **{**params, "policy_kwargs": SMALL_POLICY})
+        assert model.n_quantiles == params["n_quantiles"] and model.sequence_length == params["sequence_length"]
+
+
+def test_a_pruned_trial_stops_early_and_records_its_cost() -> None:
+    spec = TuneSpec(env=TINY_ENV, sim_steps=120, hyperparams=TINY, n_evaluations=4, eval_episodes=1)
+    study = optuna.create_study(direction="maximize", pruner=optuna.pruners.ThresholdPruner(lower=1e9))
+    study.optimize(lambda trial: objective(trial, spec), n_trials=1)
+    trial = study.trials[0]
+    assert trial.state == optuna.trial.TrialState.PRUNED
+    assert list(trial.intermediate_values) == [1]  # stopped at the first of four evaluations
+    costs = trial.user_attrs["eval_mean_costs"]
+    assert len(costs) == 1
+    assert trial.constraints[COST_CONSTRAINT] == pytest.approx(costs[0] - 25.0)
+
+
+def test_make_storage(tmp_path: Path) -> None:
+    assert make_storage(None) is None
+    assert isinstance(make_storage(str(tmp_path / "study.log")), JournalStorage)
+    assert make_storage("sqlite:///study.db") == "sqlite:///study.db"
+    assert make_storage("postgresql://user:password@host/db") == "postgresql://user:password@host/db"
+
+
+def test_sqlite_study_is_continued_by_a_second_call(tmp_path: Path) -> None:
+    storage = f"sqlite:///{tmp_path / 'study.db'}"
+    spec = TuneSpec(env=TINY_ENV, sim_steps=40, hyperparams=TINY, n_evaluations=1, eval_episodes=1)
+    for _ in range(2):
+        study = tune(spec, n_trials=1, storage=storage, study_name="s", show_progress_bar=False)
+    assert len(study.trials) == 2
+    assert all(trial.state == optuna.trial.TrialState.COMPLETE for trial in study.trials)
+    # The best trial is a feasible one (the tiny env's cost stays far below 25)
+    assert study.best_trial.constraints[COST_CONSTRAINT] <= 0
+
+
+def test_two_workers_share_one_study(tmp_path: Path) -> None:
+    journal = tmp_path / "study.log"
+    command = [sys.executable, "-m", "sb3_dsslac", "tune", "--env", TINY_ENV, "--timesteps=60", "--n-trials=1"]
+    command += ["--storage", str(journal), "--study-name", "shared", "--n-evaluations=2", "--eval-episodes=1"]
+    command += [*TINY_FLAGS]
+    workers = [
+        subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for _ in range(2)
+    ]
+    outputs = [worker.communicate(timeout=120)[0] for worker in workers]
+    assert [worker.returncode for worker in workers] == [0, 0], outputs
+    study = optuna.load_study(study_name="shared", storage=make_storage(str(journal)))
+    assert len(study.trials) == 2
+    for trial in study.trials:
+        assert trial.state == optuna.trial.TrialState.COMPLETE
+        assert len(trial.intermediate_values) == 2
+        assert trial.constraints[COST_CONSTRAINT] == pytest.approx(trial.user_attrs["eval_mean_costs"][-1] - 25.0)
+    assert np.unique([trial.params["learning_rate"] for trial in study.trials]).size == 2
