@@ -1,0 +1,50 @@
+"""DSSLAC on the real safety_envs tasks: pixels through the 64x64 conv model, SB3 evaluation, state observations."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from stable_baselines3.common.callbacks import EvalCallback
+from stable_baselines3.common.evaluation import evaluate_policy
+
+import safety_envs  # noqa: F401
+from sb3_dsslac import DSSLAC
+from tests.test_dsslac import SMALL
+
+
+@pytest.fixture(scope="module")
+def pixel_model() -> DSSLAC:
+    env = gym.make("SafetyGym/PointGoal1-v0")
+    model = DSSLAC("LatentPolicy", env, **{**SMALL, "learning_starts": 30, "train_freq": 15, "gradient_steps": 1})
+    model.learn(45)
+    return model
+
+
+def test_pixel_model_uses_the_thesis_episode_and_budget(pixel_model: DSSLAC) -> None:
+    assert pixel_model.observation_space.shape == (3, 64, 64)
+    assert pixel_model.episode_length == 500 and pixel_model.action_repeat == 2
+    assert pixel_model.cost_budget_per_step == pytest.approx(0.05)
+    assert pixel_model.discounted_cost_budget == pytest.approx(9.184, abs=1e-3)
+    assert pixel_model.latent_pretrained and pixel_model._n_updates == 1  # one burst, after the rollout that ends at 45 > 30
+
+
+def test_evaluate_policy_on_pixels(pixel_model: DSSLAC) -> None:
+    rewards, lengths = evaluate_policy(
+        pixel_model, gym.make("SafetyGym/PointGoal1-v0"), n_eval_episodes=1, return_episode_rewards=True, warn=False
+    )
+    assert lengths == [500] and np.isfinite(rewards).all()
+
+
+def test_eval_callback_on_pixels(tmp_path) -> None:
+    callback = EvalCallback(gym.make("SafetyGym/PointGoal1-v0"), eval_freq=40, n_eval_episodes=1, log_path=str(tmp_path))
+    model = DSSLAC("LatentPolicy", gym.make("SafetyGym/PointGoal1-v0"), **{**SMALL, "learning_starts": 30, "train_freq": 20})
+    model.learn(40, callback=callback)
+    evaluations = np.load(tmp_path / "evaluations.npz")
+    assert evaluations["ep_lengths"].tolist() == [[500]]
+
+
+def test_short_learn_on_state_observations() -> None:
+    env = gym.make("SafetyGym/CarGoal1-v0", obs_type="state")
+    model = DSSLAC("LatentPolicy", env, **SMALL)
+    model.learn(60)
+    assert model.observation_space.shape == env.observation_space.shape
+    assert model._n_updates == 4
