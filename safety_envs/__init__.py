@@ -1,6 +1,6 @@
-"""Safety-Gym Goal tasks (Point, Car; levels 0-2) rebuilt on current MuJoCo and Gymnasium.
+"""Safety-Gym Goal, Button and Push tasks (Point, Car, Doggo; levels 0-2) rebuilt on current MuJoCo and Gymnasium.
 
-Importing the package registers ``SafetyGym/{Robot}Goal{level}-v0`` with Gymnasium, so
+Importing the package registers ``SafetyGym/{Robot}{Task}{level}-v0`` with Gymnasium, so
 ``gym.make("SafetyGym/PointGoal1-v0")`` gives 64x64x3 uint8 first-person pixels and ``info["cost"]``.
 
 Headless rendering: on Linux without a ``DISPLAY``, ``MUJOCO_GL`` defaults to ``egl`` (set before mujoco is

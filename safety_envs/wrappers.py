@@ -5,7 +5,16 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-COST_KEYS = ("cost", "cost_hazards", "cost_vases", "cost_vases_contact", "cost_vases_velocity")
+COST_KEYS = (
+    "cost",
+    "cost_hazards",
+    "cost_vases",
+    "cost_vases_contact",
+    "cost_vases_velocity",
+    "cost_pillars",
+    "cost_buttons",
+    "cost_gremlins",
+)
 
 
 class ActionRepeat(gym.Wrapper):

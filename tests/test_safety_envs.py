@@ -40,7 +40,13 @@ def cyan_pixels(image: np.ndarray) -> int:
 
 # ---------------------------------------------------------------- registration and API
 def test_ids_registered():
-    assert ALL_IDS == [f"SafetyGym/{r}Goal{lvl}-v0" for r in ("Point", "Car") for lvl in (0, 1, 2)]
+    expected = [
+        f"SafetyGym/{robot}{task}{level}-v0"
+        for robot in ("Point", "Car", "Doggo")
+        for task in ("Goal", "Button", "Push")
+        for level in (0, 1, 2)
+    ]
+    assert ALL_IDS == expected
     for env_id in ALL_IDS:
         assert env_id in gym.registry
     env = gym.make("safety_envs:SafetyGym/PointGoal1-v0", obs_type="state")
@@ -82,10 +88,10 @@ def test_spaces_and_state_layout():
 
 
 def test_bad_names_list_valid_ones():
-    with pytest.raises(ValueError, match=r"Unknown robot 'Doggo'.*\['Car', 'Point'\]"):
-        make_env("Doggo")
-    with pytest.raises(ValueError, match=r"Unknown task 'Push'.*\['Goal'\]"):
-        make_env("Point", "Push")
+    with pytest.raises(ValueError, match=r"Unknown robot 'Ant'.*\['Car', 'Doggo', 'Point'\]"):
+        make_env("Ant")
+    with pytest.raises(ValueError, match=r"Unknown task 'Circle'.*\['Goal', 'Button', 'Push'\]"):
+        make_env("Point", "Circle")
     with pytest.raises(ValueError, match=r"Unknown level 3.*\[0, 1, 2\]"):
         make_env("Point", "Goal", 3)
     with pytest.raises(ValueError, match=r"Unknown obs_type 'rgb'.*'pixels', 'state', 'both'"):
