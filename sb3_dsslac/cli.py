@@ -317,7 +317,7 @@ def resume(run_dir: str | Path, sim_steps: int | None = None) -> Path:
     if checkpoint is None:
         raise FileNotFoundError(
             f"No checkpoint (model and replay buffer) in {run_dir / CHECKPOINT_DIR} to resume from: "
-            f"the run stopped before its first checkpoint; start it again with `train`"
+            f"the run stopped before its first checkpoint; delete the folder and start it again with `train`"
         )
     env = make_env(config.env, config.obs_type, env_kwargs=config.env_kwargs)
     model = DSSLAC.load(checkpoint.model, env=env, device=config.device)
@@ -379,7 +379,7 @@ def _learn(model: DSSLAC, config: TrainConfig, run_dir: Path, eval_seed: int, re
 # ----------------------------------------------------------------------------------------------------------------------
 
 
-def _run_config_near(model_path: Path) -> TrainConfig | None:
+def find_run_config(model_path: Path) -> TrainConfig | None:
     """The config of the run that holds ``model_path`` (in the run folder or its checkpoints), if any."""
     for folder in (model_path.parent, model_path.parent.parent):
         if (folder / CONFIG_FILE).is_file():
@@ -438,7 +438,13 @@ def evaluate(
         Path(video).parent.mkdir(parents=True, exist_ok=True)
         fps = env.metadata.get("render_fps") or 25
         timing = {"duration": 1000 / fps, "loop": 0} if str(video).endswith(".gif") else {"fps": fps}
-        writer = imageio.get_writer(str(video), **timing)
+        try:
+            writer = imageio.get_writer(str(video), **timing)
+        except (OSError, ValueError) as error:
+            env.close()
+            raise ValueError(
+                f"Cannot write {video} ({error}); .mp4 needs `pip install imageio-ffmpeg`, or write a .gif"
+            ) from error
     rewards, costs, lengths = np.zeros(episodes), np.zeros(episodes), np.zeros(episodes, dtype=int)
     try:
         for episode in tqdm(range(episodes), desc="episodes"):
@@ -596,7 +602,7 @@ def _plot_command(args: argparse.Namespace) -> None:
 def _evaluate_command(args: argparse.Namespace) -> None:
     if not Path(args.model).is_file():
         raise FileNotFoundError(f"No model file {args.model}")
-    run_config = _run_config_near(Path(args.model))
+    run_config = find_run_config(Path(args.model))
     if args.env is None and run_config is None:
         raise ValueError(f"{args.model} is not in a run folder: pass the env id (--env)")
     env_id = args.env or run_config.env  # type: ignore[union-attr]
