@@ -1,7 +1,7 @@
 """Agent steps per second of every ``SafetyGym/*`` id, single env and with 2 ``SubprocVecEnv`` workers.
 
-Usage: ``python benchmarks/env_throughput.py [--steps N] [--quick]``. Actions are uniform random; one agent step is
-``action_repeat`` (2) simulator steps. Prints a markdown table.
+Usage: ``python benchmarks/env_throughput.py [--steps N] [--quick] [--ids SafetyGym/PointButton1-v0 ...]``. Actions are
+uniform random; one agent step is ``action_repeat`` (2) simulator steps. Prints a markdown table.
 """
 
 import argparse
@@ -48,7 +48,7 @@ def vec_env_rate(env_id: str, obs_type: str, steps: int, n_envs: int = 2) -> flo
     vec_env.seed(0)
     vec_env.reset()
     rng = np.random.default_rng(0)
-    actions = rng.uniform(-1, 1, size=(steps // n_envs, n_envs, 2)).astype(np.float32)
+    actions = rng.uniform(-1, 1, size=(steps // n_envs, n_envs, *vec_env.action_space.shape)).astype(np.float32)
     vec_env.step(actions[0])  # warm-up
     start = time.perf_counter()
     for action in actions:
@@ -62,9 +62,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=2000, help="agent steps per measurement")
     parser.add_argument("--quick", action="store_true", help="200 steps per measurement, Goal1 ids only")
+    parser.add_argument("--ids", nargs="+", help="ids to measure (default: every registered id)")
     args = parser.parse_args()
     steps = 200 if args.quick else args.steps
-    ids = [env_id for env_id in safety_envs.env_ids() if not args.quick or "Goal1" in env_id]
+    ids = args.ids or [env_id for env_id in safety_envs.env_ids() if not args.quick or "Goal1" in env_id]
+    unknown = sorted(set(ids) - set(safety_envs.env_ids()))
+    if unknown:
+        parser.error(f"unknown ids {unknown}; registered: {safety_envs.env_ids()}")
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(

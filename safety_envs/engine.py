@@ -157,6 +157,9 @@ class SafetyGymEnv(gym.Env):
         self._last_box_goal = 0.0  # box to goal (3-D), Push only
         self.sim_steps = 0
         self._vase_dofs = self.ids.vase_dof[:, None] + np.arange(3)
+        mocaps = self.ids.gremlin_mocaps  # consecutive ids: a slice assigns faster than an index array
+        contiguous = len(mocaps) > 0 and np.array_equal(mocaps, np.arange(mocaps[0], mocaps[0] + len(mocaps)))
+        self._gremlin_mocaps = slice(int(mocaps[0]), int(mocaps[-1]) + 1) if contiguous else mocaps
 
     # ------------------------------------------------------------------ rendering
     def _make_renderer(self, height: int, width: int) -> mujoco.Renderer:
@@ -335,17 +338,19 @@ class SafetyGymEnv(gym.Env):
             self.model.geom_rgba[self.ids.button_geoms] = BUTTON_RGBA
             self.model.geom_rgba[self.ids.button_geoms[index]] = GOAL_BUTTON_RGBA
 
-    def _gremlin_targets(self, time: float) -> np.ndarray:
-        """Positions (n_gremlins, 3) of the gremlins' mocap bodies at sim ``time`` (s).
+    def _gremlin_targets(self, time: float | np.ndarray) -> np.ndarray:
+        """Positions (..., n_gremlins, 3) of the gremlins' mocap bodies at sim ``time`` (s), a scalar or (..., 1).
 
         Each orbits its centre at radius ``gremlins_travel``, 1 rad/s, all in phase: centre + travel (sin t, cos t).
         The height is twice the cube's half-size: Safety-Gym sets the mocap height to the half-size and its weld keeps
         the cube's spawn height (the half-size again) above it, so the cubes hover one half-size above the floor.
         """
         spec = self.task_spec
-        targets = np.empty((spec.gremlins_num, 3))
-        targets[:, :2] = self._gremlins_centre + spec.gremlins_travel * np.array([np.sin(time), np.cos(time)])
-        targets[:, 2] = 2 * spec.gremlins_size
+        time = np.asarray(time, dtype=np.float64)
+        targets = np.empty((*time.shape[:-1], spec.gremlins_num, 3)) if time.ndim else np.empty((spec.gremlins_num, 3))
+        offset = spec.gremlins_travel * np.stack([np.sin(time), np.cos(time)], axis=-1)  # (..., 1, 2) or (2,)
+        targets[..., :2] = self._gremlins_centre + offset
+        targets[..., 2] = 2 * spec.gremlins_size
         return targets
 
     def _place_gremlins(self, yaws: np.ndarray | None = None) -> None:
@@ -551,8 +556,11 @@ class SafetyGymEnv(gym.Env):
         for warning in _PHYSICS_WARNINGS:
             self.data.warning[warning].number = 0
         if self.task_spec.gremlins_num:
-            for _ in range(self.task_spec.frameskip):
-                self.data.mocap_pos[self.ids.gremlin_mocaps] = self._gremlin_targets(self.data.time)
+            frameskip, dt = self.task_spec.frameskip, self.model.opt.timestep
+            targets = self._gremlin_targets(self.data.time + dt * np.arange(frameskip)[:, None])
+            mocap_pos = self.data.mocap_pos
+            for substep in range(frameskip):
+                mocap_pos[self._gremlin_mocaps] = targets[substep]
                 mujoco.mj_step(self.model, self.data)
         else:
             mujoco.mj_step(self.model, self.data, nstep=self.task_spec.frameskip)
