@@ -6,7 +6,7 @@ learning curves, print the normalised score table and record a video of the trai
 
 The same run as one command (the thesis's protocol with smaller numbers):
 
-    python -m sb3_dsslac train --env SafetyGym/PointGoal1-v0 --preset cpu --sim-steps 30000 --eval-every 7500 \
+    python -m sb3_dsslac train --env SafetyGym/PointGoal1-v0 --preset cpu --sim-steps 20000 --eval-every 5000 \
         --eval-episodes 3 --threads 1 --out runs/pointgoal1
 
 For the thesis's setting use ``--preset thesis --sim-steps 1000000`` (the defaults) on a GPU.
@@ -21,7 +21,7 @@ from sb3_dsslac.plotting import report
 
 parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
 parser.add_argument("--out", default="runs/pointgoal1", help="run folder (must not hold a run yet)")
-parser.add_argument("--sim-steps", type=int, default=30_000, help="simulator steps of training")
+parser.add_argument("--sim-steps", type=int, default=20_000, help="simulator steps of training")
 parser.add_argument("--seed", type=int, default=0)
 args = parser.parse_args()
 
