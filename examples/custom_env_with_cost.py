@@ -44,6 +44,6 @@ run_dir = train(
         threads=1,
         verbose=0,
     ),
-    "runs/pendulum_with_cost",
+    out=None,  # runs/PendulumWithCost-v0_0_<timestamp>
 )
 print(report([run_dir], run_dir))

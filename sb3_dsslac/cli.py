@@ -86,7 +86,7 @@ def make_env(
         return gym.make(env_id, **kwargs)
     except (gym.error.Error, ModuleNotFoundError) as error:
         raise ValueError(
-            f"Cannot make env {env_id!r}: {error}. Safety-Gym tasks: {', '.join(safety_envs.env_ids())}. "
+            f"Cannot make env {env_id!r}: {str(error).rstrip('.')}. Safety-Gym tasks: {', '.join(safety_envs.env_ids())}. "
             "For your own env, register it with gymnasium.register and pass its id, or 'my_module:MyEnv-v0' "
             "so that my_module (which registers it) is imported first."
         ) from error
@@ -270,7 +270,7 @@ def train(config: TrainConfig, out: str | Path | None = None) -> Path:
     if config.threads is not None:
         th.set_num_threads(config.threads)
     if (run_dir / CONFIG_FILE).exists():
-        raise FileExistsError(f"{run_dir} already holds a run: continue it with `resume {run_dir}` or pick another --out")
+        raise FileExistsError(f"{run_dir} already holds a run: continue it with `train --resume {run_dir}` or pick another --out")
     env = make_env(config.env, config.obs_type, env_kwargs=config.env_kwargs)
     run_dir.mkdir(parents=True, exist_ok=True)
     action_repeat = action_repeat_of(env)
@@ -281,6 +281,7 @@ def train(config: TrainConfig, out: str | Path | None = None) -> Path:
         **asdict(config),
         "resolved": {
             "action_repeat": action_repeat,
+            "observation_space": str(env.observation_space),
             "agent_steps": config.sim_steps // action_repeat,
             "eval_every_agent_steps": max(config.eval_every // action_repeat, 1),
             "eval_env": f"separate env, seed {eval_seed}, {policy} policy",
