@@ -270,7 +270,9 @@ def train(config: TrainConfig, out: str | Path | None = None) -> Path:
     if config.threads is not None:
         th.set_num_threads(config.threads)
     if (run_dir / CONFIG_FILE).exists():
-        raise FileExistsError(f"{run_dir} already holds a run: continue it with `train --resume {run_dir}` or pick another --out")
+        raise FileExistsError(
+            f"{run_dir} already holds a run: continue it with `train --resume {run_dir}` or pick another --out"
+        )
     env = make_env(config.env, config.obs_type, env_kwargs=config.env_kwargs)
     run_dir.mkdir(parents=True, exist_ok=True)
     action_repeat = action_repeat_of(env)
