@@ -1,7 +1,7 @@
 """
 Tune DS-SLAC with Optuna: maximise the eval reward, the cost budget as a constraint, TPE and median pruning.
 
-    python examples/tune_optuna.py --storage runs/tune.log --n-trials 4
+    python examples/tune_optuna.py --storage runs/tune.log --n-trials 2
 
 Start the same command in several terminals (or machines, with ``--storage postgresql://...``): the workers share
 the study. Same as ``python -m sb3_dsslac tune --env SafetyGym/PointGoal1-v0 --preset cpu --timesteps 4000 ...``.
@@ -14,7 +14,7 @@ from sb3_dsslac.hpo import TuneSpec, summarize_study, tune
 parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
 parser.add_argument("--storage", default="runs/tune_pointgoal1.log", help="journal file, sqlite:/// or postgresql:// URL")
 parser.add_argument("--study-name", default="pointgoal1-cpu")
-parser.add_argument("--n-trials", type=int, default=4, help="trials of this worker")
+parser.add_argument("--n-trials", type=int, default=2, help="trials of this worker (a few minutes each on a CPU)")
 parser.add_argument("--timesteps", type=int, default=4_000, help="simulator steps per trial")
 args = parser.parse_args()
 
