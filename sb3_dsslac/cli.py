@@ -7,7 +7,6 @@ agent steps, ``action_repeat`` simulator steps each (2 on the Safety-Gym tasks).
 
 import argparse
 import csv
-import math
 import shlex
 import sys
 from dataclasses import asdict, dataclass, field, fields
@@ -28,7 +27,7 @@ from tqdm.auto import tqdm
 
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.evaluation import CostEvalCallback, EpisodeResults
-from sb3_dsslac.lagrange import cost_from_info
+from sb3_dsslac.env_info import action_repeat_of, cost_from_info, episode_length_of
 from sb3_dsslac.presets import PRESETS, preset_hyperparams
 from sb3_dsslac.version import __version__
 
@@ -90,29 +89,6 @@ def make_env(
             "For your own env, register it with gymnasium.register and pass its id, or 'my_module:MyEnv-v0' "
             "so that my_module (which registers it) is imported first."
         ) from error
-
-
-def action_repeat_of(env: gym.Env) -> int:
-    """Simulator steps per agent step of ``env`` (its ``action_repeat`` attribute, else 1)."""
-    try:
-        return int(env.get_wrapper_attr("action_repeat"))
-    except AttributeError:
-        return 1
-
-
-def episode_length_of(env: gym.Env) -> int | None:
-    """Agent steps per episode: the env's time limit, else Safety-Gym's simulator steps per episode / action repeat."""
-    if env.spec is not None and env.spec.max_episode_steps is not None:
-        return int(env.spec.max_episode_steps)
-    for name in ("max_episode_steps", "_max_episode_steps"):
-        try:
-            return int(env.get_wrapper_attr(name))
-        except (AttributeError, TypeError):
-            continue
-    task = getattr(env.unwrapped, "task_spec", None)
-    if task is not None and hasattr(task, "num_steps"):
-        return math.ceil(task.num_steps / action_repeat_of(env))
-    return None
 
 
 def make_eval_env(env_id: str, seed: int, obs_type: str | None = None, env_kwargs: dict[str, Any] | None = None) -> VecEnv:

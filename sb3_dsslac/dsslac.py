@@ -12,16 +12,15 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import polyak_update, safe_mean
-from stable_baselines3.common.vec_env import VecEnv
 from torch.nn import functional as F
 from tqdm.auto import tqdm
 
 from sb3_dsslac.buffers import SequenceReplayBuffer
 from sb3_dsslac.critics import quantile_huber_loss, sample_taus
+from sb3_dsslac.env_info import action_repeat_of, cost_from_info, episode_length_of
 from sb3_dsslac.lagrange import (
     LAGRANGE_RULES,
     LagrangeCallback,
-    cost_from_info,
     inverse_softplus,
     sgd_lagrange_step,
     softplus,
@@ -29,27 +28,6 @@ from sb3_dsslac.lagrange import (
 from sb3_dsslac.policies import LatentPolicy
 
 SelfDSSLAC = TypeVar("SelfDSSLAC", bound="DSSLAC")
-
-
-def _infer_episode_length(env: VecEnv) -> int | None:
-    """Agent steps of one episode of ``env``, from its time limit, or None when it has none."""
-    spec = env.get_attr("spec")[0]
-    if spec is not None and spec.max_episode_steps is not None:
-        return int(spec.max_episode_steps)
-    for name in ("_max_episode_steps", "max_episode_steps"):  # a TimeLimit wrapper's, then the env's own
-        try:
-            return int(env.get_attr(name)[0])
-        except (AttributeError, TypeError):
-            continue
-    return None
-
-
-def _infer_action_repeat(env: VecEnv) -> int:
-    """Simulator steps per agent step of ``env`` (its ``action_repeat`` attribute, else 1)."""
-    try:
-        return int(env.get_attr("action_repeat")[0])
-    except (AttributeError, TypeError):
-        return 1
 
 
 def _has_lagrange_callback(callback: MaybeCallback) -> bool:
@@ -225,9 +203,9 @@ class DSSLAC(OffPolicyAlgorithm):
 
         if self.env is not None:
             self._check_spaces(self.observation_space, self.action_space)
-            self.action_repeat = _infer_action_repeat(self.env)
+            self.action_repeat = action_repeat_of(self.env)
             if self.episode_length is None:
-                self.episode_length = _infer_episode_length(self.env)
+                self.episode_length = episode_length_of(self.env)
             if self.episode_length is None:
                 raise ValueError(
                     "Cannot tell how many agent steps an episode of this env has (it has no time limit): "

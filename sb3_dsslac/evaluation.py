@@ -10,7 +10,7 @@ from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_dsslac.lagrange import cost_from_info
+from sb3_dsslac.env_info import cost_from_info
 
 
 class EpisodeResults(NamedTuple):

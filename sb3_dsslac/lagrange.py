@@ -1,28 +1,11 @@
 """The Lagrange multiplier of the cost constraint and the callback that updates it on-policy."""
 
 import math
-from typing import Any
-
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
-
-def cost_from_info(info: dict[str, Any]) -> float:
-    """
-    Read the cost of one agent step from an env's ``info``.
-
-    :param info: the info dict of one env step
-    :return: ``info["cost"]`` as a float
-    :raises ValueError: when the env does not report a cost
-    """
-    try:
-        return float(info["cost"])
-    except KeyError:
-        raise ValueError(
-            "The env did not report a cost: DS-SLAC needs the per-step cost in info['cost'] "
-            "(the safety_envs tasks report it; wrap other envs so that step() adds it)."
-        ) from None
+from sb3_dsslac.env_info import cost_from_info
 
 
 def softplus(x: float) -> float:
