@@ -9,7 +9,7 @@ install:
 	$(PYTHON) -m pip install --quiet -e ".[all]"
 
 train: install
-	$(PYTHON) examples/train_pointgoal1.py --out runs/pointgoal1
+	$(PYTHON) examples/train_pointgoal1.py --out runs/pointgoal1_$$(date +%Y%m%d_%H%M%S)
 
 test: install
 	$(PYTHON) -m ruff check .
