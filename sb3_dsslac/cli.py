@@ -113,7 +113,7 @@ class TrainConfig:
     :param env: env id (see ``make_env``)
     :param sim_steps: simulator steps of training
     :param seed: seed of the model and the training env (the eval env gets ``eval_seed``)
-    :param preset: "thesis" (Table 5.2) or "cpu" (small and quick)
+    :param preset: a name of ``sb3_dsslac.presets.PRESETS``
     :param hyperparams: DSSLAC keywords on top of the preset
     :param obs_type: "pixels" or "state" (None: the env's default)
     :param env_kwargs: other keywords of the env
@@ -484,7 +484,12 @@ def _flag_hyperparams(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _add_model_flags(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", choices=sorted(PRESETS), default="thesis", help="thesis: Table 5.2; cpu: small and quick")
+    parser.add_argument(
+        "--preset",
+        choices=sorted(PRESETS),
+        default="thesis",
+        help="thesis: Table 5.2; cpu: small and quick; cpu_learning: the CPU learning benchmark's",
+    )
     parser.add_argument("--obs-type", choices=["pixels", "state"], help="observation type (default: the env's)")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's; 1 is often fastest on a busy CPU)")
