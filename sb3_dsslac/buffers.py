@@ -234,6 +234,10 @@ class SequenceReplayBuffer(ReplayBuffer):
         every = np.arange(self.buffer_size * self.n_envs)
         return int(self._windows_valid(every // self.n_envs, every % self.n_envs, 1).sum())
 
+    def stored_observations(self) -> np.ndarray:
+        """Every frame written so far, (n_frames, *obs_shape), in storage order."""
+        return self.observations[self.episode_ids >= 0]
+
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> SequenceBatch:  # type: ignore[override]
         """
         Sample windows of ``sequence_length`` transitions (``sequence_length + 1`` frames), uniformly over valid windows.

@@ -370,7 +370,11 @@ class DSSLAC(OffPolicyAlgorithm):
             )
 
     def _pretrain_latent(self) -> None:
-        """The one-off latent-model pre-training of Algorithm 1 (W_t updates on the random-policy data)."""
+        """
+        The one-off latent-model pre-training of Algorithm 1 (W_t updates on the random-policy data), after fixing the
+        standardisation of vector observations from that data.
+        """
+        self.policy.set_observation_statistics(self.replay_buffer.stored_observations())
         losses = []
         for _ in tqdm(range(self.latent_pretrain_steps), desc="latent pre-training", disable=self.verbose < 1):
             losses.append(self._latent_update()["latent_loss"])

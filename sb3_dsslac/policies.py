@@ -41,6 +41,9 @@ class LatentPolicy(BasePolicy):
     :param cost_positive_weight: extra weight of unsafe (cost > 0) steps in the cost likelihood
     :param latent_learning_rate: Adam step size of the latent model
     :param normalize_images: divide uint8 images by 255
+    :param normalize_vectors: standardise vector observations with the mean and std of the warm-up data (set once by
+        ``set_observation_statistics``; saved with the policy). Without it, the fixed-variance likelihood lets large
+        dimensions (an accelerometer's 9.81) drown small informative ones (lidar in [0, 1])
     :param optimizer_class: optimizer of every network
     :param optimizer_kwargs: extra optimizer keywords
     """
@@ -70,6 +73,7 @@ class LatentPolicy(BasePolicy):
         cost_positive_weight: float = 100.0,
         latent_learning_rate: float = 1e-4,
         normalize_images: bool = True,
+        normalize_vectors: bool = True,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
     ):
@@ -95,6 +99,10 @@ class LatentPolicy(BasePolicy):
         self.cost_loss_weight = cost_loss_weight
         self.cost_positive_weight = cost_positive_weight
         self.latent_learning_rate = latent_learning_rate
+        self.normalize_vectors = normalize_vectors
+        vector_shape = self.observation_space.shape if len(self.observation_space.shape) == 1 else (0,)  # type: ignore[arg-type]
+        self.register_buffer("observation_mean", th.zeros(vector_shape))
+        self.register_buffer("observation_std", th.ones(vector_shape))
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -152,6 +160,7 @@ class LatentPolicy(BasePolicy):
                 cost_loss_weight=self.cost_loss_weight,
                 cost_positive_weight=self.cost_positive_weight,
                 latent_learning_rate=self.latent_learning_rate,
+                normalize_vectors=self.normalize_vectors,
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,
                 lr_schedule=self._dummy_schedule,
@@ -160,8 +169,26 @@ class LatentPolicy(BasePolicy):
         return data
 
     def preprocess(self, observations: th.Tensor) -> th.Tensor:
-        """Raw observations (any leading dims, as stored) to floats; uint8 images are scaled to [0, 1]."""
-        return preprocess_obs(observations, self.observation_space, normalize_images=self.normalize_images)  # type: ignore[return-value]
+        """
+        Raw observations (any leading dims, as stored) to floats: uint8 images scaled to [0, 1], vectors standardised
+        (identity until ``set_observation_statistics``).
+        """
+        preprocessed = preprocess_obs(observations, self.observation_space, normalize_images=self.normalize_images)
+        assert isinstance(preprocessed, th.Tensor)
+        if self.observation_mean.numel() > 0:
+            return (preprocessed - self.observation_mean) / self.observation_std
+        return preprocessed
+
+    def set_observation_statistics(self, observations: np.ndarray, min_std: float = 1e-2) -> None:
+        """
+        Standardise vector observations from now on with the mean and std (floored at ``min_std``) of ``observations``
+        (n, obs_dim). Does nothing for images or when ``normalize_vectors`` is off.
+        """
+        if self.observation_mean.numel() == 0 or not self.normalize_vectors:
+            return
+        values = th.as_tensor(observations, dtype=th.float32, device=self.device)
+        self.observation_mean.copy_(values.mean(dim=0))
+        self.observation_std.copy_(values.std(dim=0).clamp(min=min_std))
 
     def initial_state(self, n_envs: int) -> tuple[th.Tensor, th.Tensor]:
         """Zero filter state (z2, previous action) for ``n_envs`` envs, on the policy's device."""

@@ -230,3 +230,28 @@ def test_nan_loss_stops_training_and_names_the_loss() -> None:
         next(model.policy.critic.parameters()).fill_(float("nan"))
     with pytest.raises(RuntimeError, match="critic_loss"):
         model.train(gradient_steps=1, batch_size=8)
+
+
+def test_vector_observations_are_standardised_from_the_warmup_data(tmp_path) -> None:
+    model = small_model(HazardPointEnv())
+    assert th.equal(model.policy.preprocess(th.ones(2, 4)), th.ones(2, 4))  # identity before the pre-training
+    model.learn(50)  # the pre-training runs after the rollout that ends at step 50
+    stored = model.replay_buffer.stored_observations()
+    assert stored.shape[1:] == (4,) and len(stored) >= 50
+    np.testing.assert_allclose(model.policy.observation_mean.numpy(), stored.mean(axis=0), rtol=1e-5, atol=1e-6)
+    fixed_mean = model.policy.observation_mean.clone()
+    model.learn(30, reset_num_timesteps=False)
+    assert th.equal(model.policy.observation_mean, fixed_mean)  # set once, not drifting
+    standardised = model.policy.preprocess(th.as_tensor(stored[:, None]))
+    assert standardised[:, 0, :2].std(dim=0).numpy() == pytest.approx([1.0, 1.0], rel=0.05)  # positions; hazard is fixed
+    model.save(tmp_path / "model.zip")
+    loaded = DSSLAC.load(tmp_path / "model.zip")
+    assert th.equal(loaded.policy.observation_std, model.policy.observation_std)
+
+
+def test_images_are_only_scaled() -> None:
+    model = small_model(HazardPointEnv(obs_type="pixels"))
+    model.learn(45)
+    frames = th.full((1, 3, 32, 32), 255, dtype=th.uint8)
+    assert model.policy.observation_mean.numel() == 0
+    assert th.equal(model.policy.preprocess(frames), th.ones(1, 3, 32, 32))
