@@ -10,6 +10,7 @@ in under 30 minutes on a 2-core machine. It writes a CSV and a PNG of the evalua
 """
 
 import argparse
+import ast
 import csv
 import time
 from dataclasses import dataclass
@@ -139,17 +140,22 @@ def main() -> None:
         "--threads", type=int, default=1, help="torch threads (small networks run fastest on one; 2 can be 10x slower)"
     )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results"))
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="DSSLAC keywords over the preset")
     args = parser.parse_args()
+    overrides = {key: ast.literal_eval(value) for key, value in (item.split("=", 1) for item in args.set)}
     th.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     stem = f"learning_{args.env.split('/')[-1].split('-')[0]}_{args.obs_type}_seed{args.seed}"
 
-    curve = train_and_evaluate(args.env, args.obs_type, args.timesteps, args.eval_freq, args.eval_episodes, args.seed)
+    curve = train_and_evaluate(
+        args.env, args.obs_type, args.timesteps, args.eval_freq, args.eval_episodes, args.seed, **overrides
+    )
     random = random_policy_results(args.env, args.obs_type, 10, 10_000 + args.seed)
     write_csv(args.out / f"{stem}.csv", curve)
     plot(args.out / f"{stem}.png", curve, random)
 
     print(f"\n{args.env} ({args.obs_type}), seed {args.seed}: {args.timesteps} agent steps in {curve.minutes:.1f} min")
+    print(f"preset cpu_learning with {overrides or 'no overrides'}")
     print(f"{'policy':<28}{'eval reward':>16}{'eval cost':>16}")
     rows = [("random (10 episodes)", *random)]
     rows += [(f"DS-SLAC @ {s:,} sim steps", r, c) for s, r, c in zip(curve.sim_steps, curve.rewards, curve.costs, strict=True)]
