@@ -141,44 +141,15 @@ def build_xml(robot: RobotSpec, task: TaskSpec, offscreen_size: tuple[int, int])
     ET.SubElement(robot_body, "camera", name="track", mode="track", pos="0 -3 4", xyaxes="1 0 0 0 0.8 0.6", fovy="60")
 
     if task.has_goal_body:
-        goal = ET.SubElement(world, "body", name="goal", mocap="true", pos=_fmt((0, 0, GOAL_HEIGHT)))
-        ET.SubElement(
-            goal,
-            "geom",
-            name="goal",
-            type="cylinder",
-            size=_fmt((task.goal_size, 0.15)),
-            rgba=GOAL_RGBA,
-            contype="0",
-            conaffinity="0",
-            group=str(GROUP_GOAL),
-        )
+        _add_mocap(world, "goal", "cylinder", (task.goal_size, 0.15), GOAL_HEIGHT, GOAL_RGBA, GROUP_GOAL, solid=False)
     if task.name == "Push":
         _add_box(world, task)
     for i in range(task.buttons_num):
-        button = ET.SubElement(world, "body", name=f"button{i}", mocap="true", pos=_fmt((0, 0, task.buttons_size)))
-        ET.SubElement(
-            button,
-            "geom",
-            name=f"button{i}",
-            type="sphere",
-            size=_fmt((task.buttons_size,)),
-            rgba=_fmt(BUTTON_RGBA),
-            group=str(GROUP_BUTTON),
-        )
+        size = (task.buttons_size,)
+        _add_mocap(world, f"button{i}", "sphere", size, task.buttons_size, _fmt(BUTTON_RGBA), GROUP_BUTTON)
     for i in range(task.hazards_num):
-        hazard = ET.SubElement(world, "body", name=f"hazard{i}", mocap="true", pos=_fmt((0, 0, HAZARD_HEIGHT)))
-        ET.SubElement(
-            hazard,
-            "geom",
-            name=f"hazard{i}",
-            type="cylinder",
-            size=_fmt((task.hazards_size, 0.01)),
-            rgba=HAZARD_RGBA,
-            contype="0",
-            conaffinity="0",
-            group=str(GROUP_HAZARD),
-        )
+        size = (task.hazards_size, 0.01)
+        _add_mocap(world, f"hazard{i}", "cylinder", size, HAZARD_HEIGHT, HAZARD_RGBA, GROUP_HAZARD, solid=False)
     for i in range(task.vases_num):
         vase = ET.SubElement(world, "body", name=f"vase{i}", pos=_fmt((0, 0, task.vases_size - task.vases_sink)))
         ET.SubElement(vase, "freejoint", name=f"vase{i}")
@@ -193,19 +164,23 @@ def build_xml(robot: RobotSpec, task: TaskSpec, offscreen_size: tuple[int, int])
             group=str(GROUP_VASE),
         )
     for i in range(task.pillars_num):
-        pillar = ET.SubElement(world, "body", name=f"pillar{i}", mocap="true", pos=_fmt((0, 0, task.pillars_height)))
-        ET.SubElement(
-            pillar,
-            "geom",
-            name=f"pillar{i}",
-            type="cylinder",
-            size=_fmt((task.pillars_size, task.pillars_height)),
-            rgba=PILLAR_RGBA,
-            group=str(GROUP_PILLAR),
-        )
+        size = (task.pillars_size, task.pillars_height)
+        _add_mocap(world, f"pillar{i}", "cylinder", size, task.pillars_height, PILLAR_RGBA, GROUP_PILLAR)
     if task.gremlins_num:
         _add_gremlins(root, world, task)
     return ET.tostring(root, encoding="unicode")
+
+
+def _add_mocap(
+    world: ET.Element, name: str, geom_type: str, size: tuple, height: float, rgba: str, group: int, solid: bool = True
+) -> None:
+    """
+    A static object moved at reset through its mocap body: body and geom ``name``, centre ``height`` m above the floor,
+    ``size`` (m) as MuJoCo reads it for ``geom_type``; ``solid=False`` makes it a marker that nothing collides with.
+    """
+    body = ET.SubElement(world, "body", name=name, mocap="true", pos=_fmt((0, 0, height)))
+    contacts = {} if solid else {"contype": "0", "conaffinity": "0"}
+    ET.SubElement(body, "geom", name=name, type=geom_type, size=_fmt(size), rgba=rgba, **contacts, group=str(group))
 
 
 def _add_box(world: ET.Element, task: TaskSpec) -> None:
