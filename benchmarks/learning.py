@@ -120,6 +120,7 @@ def plot(path: Path, curve: LearningCurve, random: tuple[np.ndarray, np.ndarray]
         ax.fill_between(curve.sim_steps, mean - std, mean + std, alpha=0.25)
         ax.axhline(baseline.mean(), color="gray", linestyle=":", label="random policy")
         ax.set_xlabel("simulator steps")
+        ax.xaxis.set_major_formatter(lambda steps, _: f"{steps / 1000:.0f}k")
         ax.set_ylabel(f"evaluation episode {label}")
     ax_cost.axhline(curve.cost_limit, color="red", linestyle="--", label=f"budget {curve.cost_limit:g}")
     ax_reward.legend()
