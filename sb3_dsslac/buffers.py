@@ -8,6 +8,8 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import BaseBuffer, ReplayBuffer
 from stable_baselines3.common.vec_env import VecNormalize
 
+from sb3_dsslac.env_info import cost_from_info
+
 
 class SequenceBatch(NamedTuple):
     """
@@ -167,11 +169,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         :param done: (n_envs,) episode ends (termination or truncation)
         :param infos: one dict per env, each with the step cost in ``info["cost"]``
         """
-        if any("cost" not in info for info in infos):
-            raise ValueError(
-                "SequenceReplayBuffer needs the per-step cost in info['cost'] "
-                "(the safety_envs tasks report it; wrap other envs to add it)"
-            )
+        costs = [cost_from_info(info) for info in infos]  # read first: a missing cost must not leave a half-written step
         obs = np.asarray(obs).reshape((self.n_envs, *self.obs_shape))
         next_obs = np.asarray(next_obs).reshape((self.n_envs, *self.obs_shape))
         done = np.asarray(done, dtype=bool).reshape(self.n_envs)
@@ -193,7 +191,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         terminated = done & ~timeouts if self.handle_timeout_termination else done
         self.actions[current, all_envs] = np.asarray(action).reshape(self.n_envs, self.action_dim)
         self.rewards[current, all_envs] = np.asarray(reward).reshape(self.n_envs)
-        self.costs[current, all_envs] = [float(info["cost"]) for info in infos]
+        self.costs[current, all_envs] = costs
         self.terminated[current, all_envs] = terminated
         self._write_records(all_envs, next_obs, self.episode_ids[current, all_envs], self.episode_steps[current, all_envs] + 1)
         self._episode_start = done.copy()

@@ -394,10 +394,13 @@ class DSSLAC(OffPolicyAlgorithm):
         self.policy.latent_optimizer.step()
         return {"latent_loss": loss.detach(), **parts}
 
-    def _actor_critic_update(self) -> dict[str, th.Tensor]:
-        """One update of the reward critic, the IQN cost critic, the actor and the entropy coefficient on the latent z."""
+    def _actor_critic_update(self, batch_size: int) -> dict[str, th.Tensor]:
+        """
+        One update of the reward critic, the cost critic, the actor and the entropy coefficient on the latent z of
+        ``batch_size`` sampled sequences.
+        """
         policy = self.policy
-        batch = self.replay_buffer.sample(self.batch_size)
+        batch = self.replay_buffer.sample(batch_size)
         n = batch.actions.shape[0]
         with th.no_grad():
             latents = policy.latent.sample_latents(policy.preprocess(batch.observations), batch.actions)
@@ -496,14 +499,13 @@ class DSSLAC(OffPolicyAlgorithm):
         if self.ent_coef_optimizer is not None:
             optimizers.append(self.ent_coef_optimizer)
         self._update_learning_rate(optimizers)
-        self.batch_size = batch_size
 
         if not self.latent_pretrained:
             self._pretrain_latent()
 
         history: dict[str, list[th.Tensor]] = defaultdict(list)
         for _ in range(gradient_steps):
-            for key, value in {**self._latent_update(), **self._actor_critic_update()}.items():
+            for key, value in {**self._latent_update(), **self._actor_critic_update(batch_size)}.items():
                 history[key].append(value)
         self._n_updates += gradient_steps
 

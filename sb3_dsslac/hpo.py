@@ -18,7 +18,7 @@ from optuna.storages.journal import JournalFileBackend
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dsslac.cli import make_env, make_eval_env
-from sb3_dsslac.env_info import action_repeat_of, episode_length_of
+from sb3_dsslac.env_info import action_repeat_of
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.evaluation import CostEvalCallback
 from sb3_dsslac.presets import preset_hyperparams
@@ -119,7 +119,6 @@ def objective(trial: optuna.Trial, spec: TuneSpec) -> float:
         th.set_num_threads(spec.threads)
     env = make_env(spec.env, spec.obs_type)
     hyperparams = preset_hyperparams(spec.preset, {**sample_dsslac_params(trial), **spec.hyperparams})
-    hyperparams.setdefault("episode_length", episode_length_of(env))
     agent_steps = max(spec.sim_steps // action_repeat_of(env), 1)
     eval_env = make_eval_env(spec.env, seed=trial.number, obs_type=spec.obs_type)
     model = DSSLAC("LatentPolicy", env, device=spec.device, **hyperparams)
