@@ -5,16 +5,21 @@ evaluation reward and cost per variant and saves a table (CSV) and a plot (PNG).
 
     python benchmarks/variants.py                                  # 3 seeds, 80k agent steps, 2 worker processes
     python benchmarks/variants.py --timesteps 30000 --seeds 0 1    # a quicker look
+
+Each finished run is saved at once (``<out>/variants/<variant>_seed<n>.npz``); a rerun with the same settings reuses
+the saved runs, so a killed benchmark continues where it stopped. Runs go seed by seed, so a partial benchmark still
+compares every variant.
 """
 
 import argparse
 import csv
-from concurrent.futures import ProcessPoolExecutor
+import re
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from learning import train_and_evaluate
+from learning import LearningCurve, train_and_evaluate
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "DS-SLAC (mean)": {},
@@ -34,6 +39,23 @@ def run(job: tuple[str, int, str, int, int, int]) -> tuple[str, int, Any]:
     return variant, seed, curve
 
 
+def run_path(out: Path, variant: str, seed: int, timesteps: int) -> Path:
+    """Where one finished run is saved: the name carries the variant, seed and length."""
+    slug = re.sub(r"[^a-z0-9]+", "_", variant.lower()).strip("_")
+    return out / "variants" / f"{slug}_seed{seed}_{timesteps}.npz"
+
+
+def save_run(path: Path, curve: LearningCurve) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **{field: np.asarray(value) for field, value in vars(curve).items()})
+
+
+def load_run(path: Path) -> LearningCurve:
+    with np.load(path) as data:
+        fields = {field: data[field] for field in data.files}
+    return LearningCurve(**{**fields, "minutes": float(fields["minutes"]), "cost_limit": float(fields["cost_limit"])})
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="SafetyGym/PointGoal1-v0")
@@ -47,10 +69,20 @@ def main() -> None:
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 
-    jobs = [(v, s, args.env, args.timesteps, args.eval_freq, args.eval_episodes) for v in args.variants for s in args.seeds]
     curves: dict[str, list[Any]] = {variant: [] for variant in args.variants}
+    jobs = []
+    for seed in args.seeds:
+        for variant in args.variants:
+            path = run_path(args.out, variant, seed, args.timesteps)
+            if path.exists():
+                curves[variant].append(load_run(path))
+                print(f"reusing {path}", flush=True)
+            else:
+                jobs.append((variant, seed, args.env, args.timesteps, args.eval_freq, args.eval_episodes))
     with ProcessPoolExecutor(args.workers) as pool:
-        for variant, seed, curve in pool.map(run, jobs):
+        for future in as_completed([pool.submit(run, job) for job in jobs]):
+            variant, seed, curve = future.result()
+            save_run(run_path(args.out, variant, seed, args.timesteps), curve)
             curves[variant].append(curve)
             final_reward, final_cost = curve.rewards[-1].mean(), curve.costs[-1].mean()
             print(f"done: {variant}, seed {seed}: final reward {final_reward:.2f}, cost {final_cost:.2f}", flush=True)
