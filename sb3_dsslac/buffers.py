@@ -33,6 +33,12 @@ class SequenceReplayBuffer(ReplayBuffer):
     """
     Replay buffer of frames stored once, sampled as windows of ``sequence_length`` transitions.
 
+    Sampling runs on ``device``: :meth:`sample_indices` draws the windows of a whole training burst at once (one small
+    upload), and :meth:`gather` cuts them out of the stored arrays with tensor indexing, so an update never loops over
+    the batch in Python nor copies frames from the host. On the CPU the tensors are views of the host arrays; on a
+    GPU the buffer keeps a device copy of every stored array (frames included: 2.46 GB for 200k 64x64 frames), brought
+    up to date with the records written since the last sampling, so each burst uploads each new frame once.
+
     Each env owns a ring of ``buffer_size // n_envs`` records. Record ``k`` holds frame ``o_k`` and the fields of the
     transition leaving it (action, reward, cost, terminated). An episode of ``T`` steps uses ``T + 1`` records: its
     last record holds the final (terminal or truncated) frame and no transition. A window is ``sequence_length + 1``
@@ -59,6 +65,7 @@ class SequenceReplayBuffer(ReplayBuffer):
     episode_steps: np.ndarray
 
     _STORAGE = ("observations", "actions", "rewards", "costs", "terminated", "episode_ids", "episode_steps")
+    _SAMPLED = ("observations", "actions", "rewards", "costs", "terminated")
 
     def __init__(
         self,
@@ -105,6 +112,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         # Episode id (unique per episode, increasing) and step within the episode of each record; -1 / 0 when unwritten
         self.episode_ids = np.full(shape, -1, dtype=np.int64)
         self.episode_steps = np.zeros(shape, dtype=np.int64)
+        self._device_copy: dict[str, th.Tensor] | None = None  # device copies of the _SAMPLED arrays (GPU only)
         self._init_counters()
 
     def _init_counters(self) -> None:
@@ -112,13 +120,21 @@ class SequenceReplayBuffer(ReplayBuffer):
         self._episode_start = np.ones(self.n_envs, dtype=bool)  # the next `add` of that env opens an episode
         self._next_episode_id = 0
         self._n_windows = 0  # number of valid windows currently in the buffer
+        self._n_records_on_device = np.zeros(self.n_envs, dtype=np.int64)  # records already in the device copy
         self.pos = 0
         self.full = False
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by all storage arrays."""
+        """Bytes held by all host storage arrays."""
         return sum(getattr(self, name).nbytes for name in self._STORAGE)
+
+    @property
+    def device_nbytes(self) -> int:
+        """Bytes of the device copy (0 on the CPU, where sampling reads the host arrays)."""
+        if self._device_copy is None:
+            return 0
+        return sum(tensor.numel() * tensor.element_size() for tensor in self._device_copy.values())
 
     def reset(self) -> None:
         """Forget every stored record (the arrays are kept)."""
@@ -236,6 +252,70 @@ class SequenceReplayBuffer(ReplayBuffer):
         """Every frame written so far, (n_frames, *obs_shape), in storage order."""
         return self.observations[self.episode_ids >= 0]
 
+    def _stored_tensors(self) -> dict[str, th.Tensor]:
+        """The sampled arrays as tensors on ``self.device``: views of the host arrays on the CPU, else the device copy."""
+        if self.device.type == "cpu":
+            return {name: th.from_numpy(getattr(self, name)) for name in self._SAMPLED}
+        if self._device_copy is None:
+            self._device_copy = {name: th.from_numpy(getattr(self, name)).to(self.device) for name in self._SAMPLED}
+            self._n_records_on_device = self._n_records.copy()
+        else:
+            self._upload_new_records()
+        return self._device_copy
+
+    def _upload_new_records(self) -> None:
+        """Copy the slots written since the last upload (and the record before them, whose transition fields change
+        on the next ``add``) to the device copy: at most two contiguous chunks per array."""
+        assert self._device_copy is not None
+        first = max(int(self._n_records_on_device.min()) - 1, 0)
+        end = int(self._n_records.max())
+        if end - first >= self.buffer_size:
+            chunks = [(0, self.buffer_size)]
+        else:
+            start, stop = first % self.buffer_size, end % self.buffer_size
+            chunks = [(start, stop)] if start <= stop else [(start, self.buffer_size), (0, stop)]
+        for name, tensor in self._device_copy.items():
+            for start, stop in chunks:
+                if stop > start:
+                    tensor[start:stop].copy_(th.from_numpy(getattr(self, name)[start:stop]))
+        self._n_records_on_device = self._n_records.copy()
+
+    def sample_indices(self, n_batches: int, batch_size: int) -> th.Tensor:
+        """
+        Draw the windows of ``n_batches`` batches at once, uniformly over valid windows, and bring the device copy up
+        to date. Pass each ``[k]`` to :meth:`gather`; they stay valid until the next ``add``.
+
+        :return: (n_batches, batch_size, 2) int64 tensor of (start slot, env) on ``self.device``
+        """
+        if not self.can_sample():
+            raise ValueError(
+                f"Cannot sample: the buffer stores {self._count_steps()} steps but no episode has "
+                f"{self.sequence_length} consecutive stored steps; a window needs sequence_length={self.sequence_length} "
+                f"steps ({self.sequence_length + 1} frames) of one episode, and shorter episodes give no window"
+            )
+        starts, envs = self._sample_starts(n_batches * batch_size)
+        self._stored_tensors()  # upload the new records now, not inside the updates
+        indices = np.stack([starts, envs], axis=-1).reshape(n_batches, batch_size, 2)
+        return th.as_tensor(indices).to(self.device)
+
+    def gather(self, indices: th.Tensor) -> SequenceBatch:
+        """
+        Cut the windows ``indices`` (B, 2) of :meth:`sample_indices` out of the stored arrays, on ``self.device``.
+        Frames keep their stored dtype (uint8 images): the policy converts them to floats on the device.
+        """
+        stored = self._stored_tensors()
+        offsets = th.arange(self.sequence_length + 1, device=indices.device)
+        slots = (indices[:, :1] + offsets) % self.buffer_size  # (B, L+1)
+        envs = indices[:, 1:]
+        transitions = slots[:, :-1]
+        return SequenceBatch(
+            observations=stored["observations"][slots, envs],
+            actions=stored["actions"][transitions, envs],
+            rewards=stored["rewards"][transitions, envs],
+            costs=stored["costs"][transitions, envs],
+            terminated=stored["terminated"][transitions, envs],
+        )
+
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> SequenceBatch:  # type: ignore[override]
         """
         Sample windows of ``sequence_length`` transitions (``sequence_length + 1`` frames), uniformly over valid windows.
@@ -244,29 +324,19 @@ class SequenceReplayBuffer(ReplayBuffer):
         :param env: VecNormalize to normalise observations (returned as float32) and rewards, as SB3 does
         :return: the batch on ``self.device``
         """
-        if not self.can_sample():
-            raise ValueError(
-                f"Cannot sample: the buffer stores {self._count_steps()} steps but no episode has "
-                f"{self.sequence_length} consecutive stored steps; a window needs sequence_length={self.sequence_length} "
-                f"steps ({self.sequence_length + 1} frames) of one episode, and shorter episodes give no window"
-            )
-        starts, envs = self._sample_starts(batch_size)
-        slots = (starts[:, None] + np.arange(self.sequence_length + 1)) % self.buffer_size  # (B, L+1)
-        envs = envs[:, None]
-        transitions = slots[:, :-1]
-        observations = self._normalize_obs(self.observations[slots, envs], env)
-        rewards = self._normalize_reward(self.rewards[transitions, envs], env)
-        return SequenceBatch(
-            observations=th.as_tensor(observations).to(self.device),
-            actions=th.as_tensor(self.actions[transitions, envs]).to(self.device),
-            rewards=th.as_tensor(rewards).to(self.device),
-            costs=th.as_tensor(self.costs[transitions, envs]).to(self.device),
-            terminated=th.as_tensor(self.terminated[transitions, envs]).to(self.device),
+        batch = self.gather(self.sample_indices(1, batch_size)[0])
+        if env is None:
+            return batch
+        observations = self._normalize_obs(batch.observations.cpu().numpy(), env)
+        rewards = self._normalize_reward(batch.rewards.cpu().numpy(), env)
+        return batch._replace(
+            observations=th.as_tensor(observations).to(self.device), rewards=th.as_tensor(rewards).to(self.device)
         )
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickle only the slots written so far, so an early checkpoint is not the size of the full buffer."""
         state = self.__dict__.copy()
+        state["_device_copy"] = None  # rebuilt from the host arrays at the next sample
         n_rows = min(int(self._n_records.max()), self.buffer_size)
         for name in self._STORAGE:
             state[name] = state[name][:n_rows]

@@ -132,6 +132,46 @@ def test_windows_stay_inside_one_episode(plans, length, extra_slots, n_steps, se
     assert sampled <= expected
 
 
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    plans=st.lists(st.lists(episode_st, min_size=1, max_size=6), min_size=1, max_size=3),
+    extra_slots=st.integers(0, 12),
+    bursts=st.lists(st.integers(0, 30), min_size=1, max_size=6),
+)
+def test_device_copy_tracks_the_host_arrays(plans, extra_slots, bursts):
+    # The GPU path: a device copy brought up to date before each sampling must equal the host arrays, through ring
+    # wrap-arounds and the transition fields that the next `add` writes into an already uploaded record.
+    n_envs, length = len(plans), 2
+    buffer = SequenceReplayBuffer(
+        (length + 1 + extra_slots) * n_envs, VEC_SPACE, ACT_SPACE, device="cpu", n_envs=n_envs, sequence_length=length
+    )
+    buffer._device_copy = {name: th.from_numpy(getattr(buffer, name).copy()) for name in buffer._SAMPLED}
+    envs = ScriptedEnvs(plans)
+    for n_steps in bursts:
+        for _ in range(n_steps):
+            envs.step(buffer)
+        buffer._upload_new_records()
+        for name, tensor in buffer._device_copy.items():
+            np.testing.assert_array_equal(tensor.numpy(), getattr(buffer, name), err_msg=name)
+
+
+def test_indices_for_a_burst_gather_the_same_windows_as_sample():
+    envs = ScriptedEnvs([[(7, False, False)], [(5, True, False)]])
+    buffer = SequenceReplayBuffer(2 * 40, VEC_SPACE, ACT_SPACE, device="cpu", n_envs=2, sequence_length=3)
+    for _ in range(60):
+        envs.step(buffer)
+    np.random.seed(3)
+    indices = buffer.sample_indices(5, 16)
+    assert indices.shape == (5, 16, 2) and indices.dtype == th.int64
+    np.random.seed(3)
+    starts, env_ids = buffer._sample_starts(5 * 16)
+    np.testing.assert_array_equal(indices.reshape(-1, 2).numpy(), np.stack([starts, env_ids], axis=-1))
+    for k in range(5):
+        batch = buffer.gather(indices[k])
+        for b in range(16):
+            check_window(batch, b, envs, 3)
+
+
 def test_sampling_is_uniform_over_windows():
     # Env 0: one long episode; env 1: many episodes of exactly L steps (one window each, low valid fraction)
     length = 3
