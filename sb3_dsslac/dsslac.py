@@ -1,5 +1,8 @@
 """DS-SLAC: Distributional Safe Stochastic Latent Actor-Critic as a Stable-Baselines3 off-policy algorithm."""
 
+import contextlib
+import math
+import warnings
 from collections import defaultdict, deque
 from typing import Any, ClassVar, TypeVar
 
@@ -10,12 +13,12 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
-from stable_baselines3.common.utils import polyak_update, safe_mean
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TrainFreq, TrainFrequencyUnit
+from stable_baselines3.common.utils import safe_mean
 from torch.nn import functional as F
 from tqdm.auto import tqdm
 
-from sb3_dsslac.buffers import SequenceReplayBuffer
+from sb3_dsslac.buffers import SequenceBatch, SequenceReplayBuffer
 from sb3_dsslac.critics import quantile_huber_loss, sample_taus
 from sb3_dsslac.env_info import action_repeat_of, cost_from_info, episode_length_of
 from sb3_dsslac.lagrange import (
@@ -63,7 +66,8 @@ class DSSLAC(OffPolicyAlgorithm):
     :param tau: Polyak factor of the target critics
     :param gamma: discount of the reward
     :param cost_gamma: discount of the cost
-    :param train_freq: agent steps between training bursts
+    :param train_freq: agent steps between training bursts; with ``n_envs`` envs it counts agent steps over all envs
+        (it becomes ``train_freq / n_envs`` calls of ``env.step``), so the updates per agent step stay the same
     :param gradient_steps: updates per burst (each is one latent and one actor-critic update)
     :param latent_learning_rate: Adam step size of the latent model
     :param ent_coef: entropy coefficient, "auto" (learned from 1.0) or "auto_<init>" (learned from init), or a float
@@ -87,13 +91,21 @@ class DSSLAC(OffPolicyAlgorithm):
     :param image_noise: variance of the Gaussian observation likelihood
     :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss
     :param cost_positive_weight: extra weight of unsafe steps in the cost likelihood
+    :param share_latent_batch: one sampled batch and one encoder pass per update: the latent model trains on the first
+        ``latent_batch_size`` sequences, and the actor-critic update uses the posterior of the first ``batch_size``
+        from the same features (before the latent step). False keeps the thesis's two independent batches
+    :param bf16: run the latent model's passes (the convolutions: most of the arithmetic) under bfloat16 autocast;
+        the actor, critics and every optimizer stay in float32
+    :param compile_updates: ``torch.compile`` the latent model's posterior rollout (a loop of small MLPs, the
+        launch-bound part of the update) and the cost critic; the convolutions stay eager. Costs a one-off
+        compilation (about a minute) at the first update
     :param replay_buffer_kwargs: extra keywords of the ``SequenceReplayBuffer``
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder
     :param policy_kwargs: keywords of the policy (``z1_dim``, ``z2_dim``, ``feature_dim``, ``hidden_units``, ``n_cosines``)
     :param verbose: 0 silent, 1 info (with a progress bar for the latent pre-training), 2 debug
     :param seed: random seed
-    :param device: "cpu", "cuda" or "auto"
+    :param device: "cpu", "cuda" or "auto"; on CUDA float32 matrix products use TF32
     :param _init_setup_model: build the networks at construction
     """
 
@@ -136,6 +148,9 @@ class DSSLAC(OffPolicyAlgorithm):
         image_noise: float = 0.4,
         cost_loss_weight: float = 30.0,
         cost_positive_weight: float = 100.0,
+        share_latent_batch: bool = False,
+        bf16: bool = False,
+        compile_updates: bool = False,
         replay_buffer_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -185,6 +200,9 @@ class DSSLAC(OffPolicyAlgorithm):
         self.cvar_risk_level = cvar_risk_level
         self.max_grad_norm = max_grad_norm
         self.actor_max_grad_norm = actor_max_grad_norm
+        self.share_latent_batch = share_latent_batch
+        self.bf16 = bf16
+        self.compile_updates = compile_updates
         self.policy_kwargs.update(
             image_noise=image_noise,
             cost_loss_weight=cost_loss_weight,
@@ -252,8 +270,28 @@ class DSSLAC(OffPolicyAlgorithm):
         """The current Lagrange multiplier (softplus of its raw parameter)."""
         return softplus(float(self.lagrange_raw.item()))
 
+    def _convert_train_freq(self) -> None:
+        """SB3's conversion, then a step frequency counted in agent steps over all envs becomes ``env.step`` calls."""
+        converting = not isinstance(self.train_freq, TrainFreq)
+        super()._convert_train_freq()
+        assert isinstance(self.train_freq, TrainFreq)
+        if converting and self.n_envs > 1 and self.train_freq.unit == TrainFrequencyUnit.STEP:
+            frequency = self.train_freq.frequency
+            if frequency % self.n_envs != 0:
+                warnings.warn(
+                    f"train_freq={frequency} agent steps is not a multiple of n_envs={self.n_envs}: bursts come every "
+                    f"{math.ceil(frequency / self.n_envs) * self.n_envs} agent steps, so there are fewer updates per step"
+                )
+            self.train_freq = TrainFreq(math.ceil(frequency / self.n_envs), TrainFrequencyUnit.STEP)
+
     def _setup_model(self) -> None:
         super()._setup_model()
+        if self.device.type == "cuda":
+            th.backends.cuda.matmul.allow_tf32 = True
+            th.backends.cudnn.allow_tf32 = True
+        if self.compile_updates:
+            self.policy.latent.posterior = th.compile(self.policy.latent.posterior)  # type: ignore[method-assign]
+            self.policy.cost_critic.compile()
         self.lagrange_raw = th.tensor(inverse_softplus(self.lagrange_init), dtype=th.float64)
         if self.target_entropy == "auto":
             self.target_entropy = -float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
@@ -369,6 +407,12 @@ class DSSLAC(OffPolicyAlgorithm):
                 "for NaN/inf, or lower the learning rates."
             )
 
+    def _latent_autocast(self) -> contextlib.AbstractContextManager:
+        """bfloat16 autocast for the latent model's passes when ``bf16`` is set, else nothing."""
+        if self.bf16:
+            return th.autocast(self.device.type, dtype=th.bfloat16)
+        return contextlib.nullcontext()
+
     def _pretrain_latent(self) -> None:
         """
         The one-off latent-model pre-training of Algorithm 1 (W_t updates on the random-policy data), after fixing the
@@ -376,17 +420,30 @@ class DSSLAC(OffPolicyAlgorithm):
         """
         self.policy.set_observation_statistics(self.replay_buffer.stored_observations())
         losses = []
-        for _ in tqdm(range(self.latent_pretrain_steps), desc="latent pre-training", disable=self.verbose < 1):
-            losses.append(self._latent_update()["latent_loss"])
+        progress = tqdm(total=self.latent_pretrain_steps, desc="latent pre-training", disable=self.verbose < 1)
+        for done in range(0, self.latent_pretrain_steps, self._BURST):
+            n_updates = min(self._BURST, self.latent_pretrain_steps - done)
+            indices = self.replay_buffer.sample_indices(n_updates, self.latent_batch_size)
+            for k in range(n_updates):
+                losses.append(self._latent_update(self.replay_buffer.gather(indices[k]))["latent_loss"])
+            progress.update(n_updates)
+        progress.close()
         self.latent_pretrained = True
         if losses:
             self.logger.record("train/pretrain_latent_loss", float(th.stack(losses[-100:]).mean()))
 
-    def _latent_update(self) -> dict[str, th.Tensor]:
-        """One latent-model update on ``latent_batch_size`` sequences; returns its detached losses."""
-        batch = self.replay_buffer.sample(self.latent_batch_size)
-        observations = self.policy.preprocess(batch.observations)
-        loss, parts = self.policy.latent.loss(observations, batch.actions, batch.rewards, batch.costs, batch.terminated)
+    _BURST = 100  # latent pre-training updates whose windows are drawn at once
+
+    def _latent_update(self, batch: SequenceBatch, features: th.Tensor | None = None) -> dict[str, th.Tensor]:
+        """
+        One latent-model update on a batch of sequences (``features``: their encoder features, if already computed);
+        returns its detached losses.
+        """
+        with self._latent_autocast():
+            observations = self.policy.preprocess(batch.observations)
+            loss, parts = self.policy.latent.loss(
+                observations, batch.actions, batch.rewards, batch.costs, batch.terminated, features=features
+            )
         self._check_finite("latent_loss", loss)
         self.policy.latent_optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -394,16 +451,46 @@ class DSSLAC(OffPolicyAlgorithm):
         self.policy.latent_optimizer.step()
         return {"latent_loss": loss.detach(), **parts}
 
-    def _actor_critic_update(self, batch_size: int) -> dict[str, th.Tensor]:
+    def _update(self, indices: th.Tensor, batch_size: int) -> dict[str, th.Tensor]:
         """
-        One update of the reward critic, the cost critic, the actor and the entropy coefficient on the latent z of
-        ``batch_size`` sampled sequences.
+        One gradient step of Algorithm 1: a latent-model update, then an actor-critic update.
+
+        :param indices: windows from ``SequenceReplayBuffer.sample_indices``: ``latent_batch_size + batch_size`` of them
+            (two independent batches), or ``max(latent_batch_size, batch_size)`` with ``share_latent_batch``
+        """
+        latent = self.policy.latent
+        if not self.share_latent_batch:
+            stats = self._latent_update(self.replay_buffer.gather(indices[: self.latent_batch_size]))
+            batch = self.replay_buffer.gather(indices[self.latent_batch_size :])
+            with th.no_grad(), self._latent_autocast():
+                latents = latent.sample_latents(self.policy.preprocess(batch.observations), batch.actions)
+            return {**stats, **self._actor_critic_update(batch, latents.float())}
+
+        batch = self.replay_buffer.gather(indices)
+        n_latent = self.latent_batch_size
+        with self._latent_autocast():
+            observations = self.policy.preprocess(batch.observations)
+            latent_features = latent.encode(observations[:n_latent])
+            with th.no_grad():
+                features = latent_features.detach()
+                if batch_size > n_latent:
+                    features = th.cat([features, latent.encode(observations[n_latent:batch_size])])
+                latents = latent.latents_from_features(features[:batch_size], batch.actions[:batch_size])
+        latent_batch = SequenceBatch(*(field[:n_latent] for field in batch))
+        stats = self._latent_update(latent_batch, features=latent_features)
+        ac_batch = SequenceBatch(*(field[:batch_size] for field in batch))
+        return {**stats, **self._actor_critic_update(ac_batch, latents.float())}
+
+    def _actor_critic_update(self, batch: SequenceBatch, latents: th.Tensor) -> dict[str, th.Tensor]:
+        """
+        One update of the reward critic, the cost critic, the actor and the entropy coefficient on the last transition
+        of each sequence.
+
+        :param batch: the sequences (B, L+1 frames)
+        :param latents: their posterior samples (B, L+1, z_dim), no gradient
         """
         policy = self.policy
-        batch = self.replay_buffer.sample(batch_size)
         n = batch.actions.shape[0]
-        with th.no_grad():
-            latents = policy.latent.sample_latents(policy.preprocess(batch.observations), batch.actions)
         z, next_z = latents[:, -2], latents[:, -1]
         actions = batch.actions[:, -1]
         rewards, costs = batch.rewards[:, -1:], batch.costs[:, -1:]
@@ -485,8 +572,9 @@ class DSSLAC(OffPolicyAlgorithm):
             self.ent_coef_optimizer.step()
             stats["ent_coef_loss"] = ent_coef_loss.detach()
 
-        polyak_update(policy.critic.parameters(), policy.critic_target.parameters(), self.tau)
-        polyak_update(policy.cost_critic.parameters(), policy.cost_critic_target.parameters(), self.tau)
+        targets = [*policy.critic_target.parameters(), *policy.cost_critic_target.parameters()]
+        sources = [*policy.critic.parameters(), *policy.cost_critic.parameters()]
+        th._foreach_lerp_(targets, sources, self.tau)  # Polyak: target += tau * (source - target), one fused call
         return stats
 
     def train(self, gradient_steps: int, batch_size: int) -> None:
@@ -504,8 +592,13 @@ class DSSLAC(OffPolicyAlgorithm):
             self._pretrain_latent()
 
         history: dict[str, list[th.Tensor]] = defaultdict(list)
-        for _ in range(gradient_steps):
-            for key, value in {**self._latent_update(), **self._actor_critic_update(batch_size)}.items():
+        if self.share_latent_batch:
+            windows_per_update = max(self.latent_batch_size, batch_size)
+        else:
+            windows_per_update = self.latent_batch_size + batch_size
+        indices = self.replay_buffer.sample_indices(gradient_steps, windows_per_update)
+        for k in range(gradient_steps):
+            for key, value in self._update(indices[k], batch_size).items():
                 history[key].append(value)
         self._n_updates += gradient_steps
 

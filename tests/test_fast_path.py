@@ -1,0 +1,169 @@
+"""The fast update path gives the plain path's numbers: precomputed features, channels-last convolutions, compiled
+modules, bfloat16 autocast, one shared batch, fused Polyak updates and several envs per burst."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from sb3_dsslac import DSSLAC
+from sb3_dsslac.latent import LatentModel
+from tests.synthetic_envs import HazardPointEnv
+from tests.test_dsslac import SMALL, small_model
+
+
+def image_batch(size: int, batch: int = 4, steps: int = 3, seed: int = 0) -> tuple[th.Tensor, ...]:
+    """Smooth random images in [0, 1] (B, T+1, 3, size, size) and the matching actions, rewards, costs, terminations."""
+    generator = th.Generator().manual_seed(seed)
+    coarse = th.rand(batch * (steps + 1), 3, size // 8, size // 8, generator=generator)
+    images = th.nn.functional.interpolate(coarse, size=(size, size), mode="bilinear").view(batch, steps + 1, 3, size, size)
+    actions = 2.0 * th.rand(batch, steps, 2, generator=generator) - 1.0
+    rewards = th.randn(batch, steps, generator=generator)
+    costs = (th.rand(batch, steps, generator=generator) < 0.3).float()
+    return images, actions, rewards, costs, th.zeros(batch, steps)
+
+
+def seeded_loss(model: LatentModel, batch: tuple[th.Tensor, ...], **kwargs) -> tuple[th.Tensor, dict[str, th.Tensor]]:
+    th.manual_seed(7)
+    return model.loss(*batch, **kwargs)
+
+
+def test_precomputed_features_give_the_same_latent_loss() -> None:
+    model = LatentModel((3, 32, 32), 2, feature_dim=16, z1_dim=4, z2_dim=8, hidden_units=(32, 32))
+    batch = image_batch(32)
+    plain, _ = seeded_loss(model, batch)
+    shared, _ = seeded_loss(model, batch, features=model.encode(batch[0]))
+    th.testing.assert_close(shared, plain)
+
+
+def test_channels_last_convolutions_match_contiguous_ones() -> None:
+    th.manual_seed(0)
+    model = LatentModel((3, 64, 64), 2, feature_dim=32, z1_dim=4, z2_dim=8, hidden_units=(32, 32))
+    conv_weight = model.encoder[0].weight
+    assert conv_weight.is_contiguous(memory_format=th.channels_last) and not conv_weight.is_contiguous()
+    contiguous = copy.deepcopy(model).to(memory_format=th.contiguous_format)
+    assert contiguous.encoder[0].weight.is_contiguous()
+    batch = image_batch(64)
+    loss, _ = seeded_loss(model, batch)
+    reference, _ = seeded_loss(contiguous, batch)
+    th.testing.assert_close(loss, reference, rtol=1e-5, atol=1e-3)
+    loss.backward()
+    reference.backward()
+    th.testing.assert_close(model.decoder[0].weight.grad, contiguous.decoder[0].weight.grad, rtol=1e-4, atol=1e-4)
+
+
+def test_bf16_latent_loss_is_within_one_percent_of_fp32() -> None:
+    th.manual_seed(0)
+    model = LatentModel((3, 64, 64), 2)  # the thesis's networks
+    batch = image_batch(64)
+    reference, reference_parts = seeded_loss(model, batch)
+    with th.autocast("cpu", dtype=th.bfloat16):
+        loss, parts = seeded_loss(model, batch)
+    assert loss.dtype == th.float32
+    assert loss.item() != reference.item()  # the autocast took effect
+    assert abs(loss.item() - reference.item()) <= 1e-2 * abs(reference.item())
+    assert abs(parts["image_loss"].item() - reference_parts["image_loss"].item()) <= 1e-2 * reference_parts["image_loss"].abs()
+
+
+def warmed_up_pair(**fast: object) -> tuple[DSSLAC, DSSLAC]:
+    """Two models with the same weights, optimizer states and replay buffer, the second with ``fast`` keywords."""
+    plain = small_model(HazardPointEnv(obs_type="pixels"), learning_starts=10_000)
+    plain.learn(60)  # warm-up data only
+    other = small_model(HazardPointEnv(obs_type="pixels"), **fast)
+    other.policy.load_state_dict(plain.policy.state_dict())
+    other.replay_buffer = plain.replay_buffer
+    for model in (plain, other):
+        model.latent_pretrained = True
+    return plain, other
+
+
+def seeded_updates(model: DSSLAC, indices: th.Tensor, n_updates: int = 2) -> list[dict[str, th.Tensor]]:
+    th.manual_seed(11)
+    return [model._update(indices[k], model.batch_size) for k in range(n_updates)]
+
+
+def test_compiled_update_matches_eager(monkeypatch) -> None:
+    # Inductor draws its own random numbers unless told to use eager's generator
+    monkeypatch.setattr(th._inductor.config, "fallback_random", True)
+    eager, compiled = warmed_up_pair(compile_updates=True)
+    indices = eager.replay_buffer.sample_indices(2, eager.latent_batch_size + eager.batch_size)
+    for eager_stats, compiled_stats in zip(seeded_updates(eager, indices), seeded_updates(compiled, indices), strict=True):
+        assert eager_stats.keys() == compiled_stats.keys()
+        for key in eager_stats:
+            th.testing.assert_close(compiled_stats[key], eager_stats[key], rtol=1e-4, atol=1e-4, msg=key)
+
+
+def test_bf16_update_losses_are_within_one_percent_of_fp32() -> None:
+    fp32, bf16 = warmed_up_pair(bf16=True)
+    indices = fp32.replay_buffer.sample_indices(1, fp32.latent_batch_size + fp32.batch_size)
+    (reference,), (stats,) = seeded_updates(fp32, indices, 1), seeded_updates(bf16, indices, 1)
+    assert stats["latent_loss"] != reference["latent_loss"]  # the autocast took effect
+    for key in ("latent_loss", "image_loss"):
+        assert abs(stats[key] - reference[key]) <= 1e-2 * abs(reference[key]), key
+
+
+class CountFrames:
+    """Forward hook counting the frames an encoder sees."""
+
+    def __init__(self) -> None:
+        self.frames = 0
+
+    def __call__(self, module: th.nn.Module, inputs: tuple[th.Tensor, ...], output: th.Tensor) -> None:
+        self.frames += inputs[0].shape[0]
+
+
+@pytest.mark.parametrize("share", [False, True])
+def test_shared_batch_encodes_each_sampled_frame_once(share: bool) -> None:
+    model = small_model(HazardPointEnv(obs_type="pixels"), share_latent_batch=share, learning_starts=10_000)
+    model.learn(60)
+    model.latent_pretrained = True
+    counter = CountFrames()
+    model.policy.latent.encoder.register_forward_hook(counter)
+    model.train(gradient_steps=3, batch_size=model.batch_size)
+    frames_per_sequence = model.sequence_length + 1
+    sequences = max(model.batch_size, model.latent_batch_size) if share else model.batch_size + model.latent_batch_size
+    assert counter.frames == 3 * sequences * frames_per_sequence
+
+
+def test_fused_polyak_update_follows_the_formula() -> None:
+    model = small_model(HazardPointEnv())
+    model.learn(60)
+    policy = model.policy
+    th.nn.init.normal_(policy.critic_target.q1[0].weight)  # make target and source differ
+    before = policy.critic_target.q1[0].weight.detach().clone()
+    indices = model.replay_buffer.sample_indices(1, model.latent_batch_size + model.batch_size)
+    model._update(indices[0], model.batch_size)
+    expected = (1.0 - model.tau) * before + model.tau * policy.critic.q1[0].weight.detach()
+    th.testing.assert_close(policy.critic_target.q1[0].weight, expected)
+
+
+def test_several_envs_keep_one_update_per_agent_step() -> None:
+    env = DummyVecEnv([HazardPointEnv for _ in range(4)])
+    model = DSSLAC("LatentPolicy", env, **{**SMALL, "train_freq": 8, "gradient_steps": 8})
+    assert model.train_freq.frequency == 2  # env.step calls of 4 agent steps each
+    model.learn(200)
+    assert model.num_timesteps == 200
+    # Bursts of 8 updates every 8 agent steps from the first burst after the 40 warm-up steps
+    assert model._n_updates == 8 * len(range(48, 201, 8))
+
+
+def test_train_freq_not_a_multiple_of_n_envs_warns() -> None:
+    env = DummyVecEnv([HazardPointEnv for _ in range(3)])
+    with pytest.warns(UserWarning, match="not a multiple of n_envs=3"):
+        model = DSSLAC("LatentPolicy", env, **{**SMALL, "train_freq": 10})
+    assert model.train_freq.frequency == 4
+
+
+def test_fast_keywords_train_save_and_load(tmp_path) -> None:
+    model = small_model(HazardPointEnv(obs_type="pixels"), share_latent_batch=True, bf16=True)
+    model.learn(100)
+    assert model._n_updates == 2 * 6
+    model.save(tmp_path / "model.zip")
+    loaded = DSSLAC.load(tmp_path / "model.zip")
+    assert loaded.share_latent_batch and loaded.bf16
+    observation = np.asarray(model.env.reset())
+    actions, _ = model.predict(observation, deterministic=True)
+    loaded_actions, _ = loaded.predict(observation, deterministic=True)
+    np.testing.assert_allclose(loaded_actions, actions, rtol=1e-5)
