@@ -572,10 +572,15 @@ class DSSLAC(OffPolicyAlgorithm):
             self.ent_coef_optimizer.step()
             stats["ent_coef_loss"] = ent_coef_loss.detach()
 
+        self._update_targets()
+        return stats
+
+    def _update_targets(self) -> None:
+        """Polyak update of both target critics, ``target += tau * (source - target)``, in one fused call."""
+        policy = self.policy
         targets = [*policy.critic_target.parameters(), *policy.cost_critic_target.parameters()]
         sources = [*policy.critic.parameters(), *policy.cost_critic.parameters()]
-        th._foreach_lerp_(targets, sources, self.tau)  # Polyak: target += tau * (source - target), one fused call
-        return stats
+        th._foreach_lerp_(targets, sources, self.tau)
 
     def train(self, gradient_steps: int, batch_size: int) -> None:
         """
