@@ -9,6 +9,7 @@ import argparse
 import csv
 import shlex
 import sys
+from functools import partial
 from dataclasses import asdict, dataclass, field, fields
 from datetime import datetime
 from pathlib import Path
@@ -22,7 +23,7 @@ from stable_baselines3.common.callbacks import CheckpointCallback
 from stable_baselines3.common.logger import CSVOutputFormat, Logger, make_output_format
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecTransposeImage
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, VecTransposeImage
 from tqdm.auto import tqdm
 
 from sb3_dsslac.dsslac import DSSLAC
@@ -91,6 +92,13 @@ def make_env(
         ) from error
 
 
+def make_train_env(config: "TrainConfig") -> gym.Env | VecEnv:
+    """The training env: one env in this process, or ``config.n_envs`` envs in their own processes."""
+    if config.n_envs == 1:
+        return make_env(config.env, config.obs_type, env_kwargs=config.env_kwargs)
+    return SubprocVecEnv([partial(make_env, config.env, config.obs_type, env_kwargs=config.env_kwargs)] * config.n_envs)
+
+
 def make_eval_env(env_id: str, seed: int, obs_type: str | None = None, env_kwargs: dict[str, Any] | None = None) -> VecEnv:
     """A separate, seeded, Monitor-wrapped evaluation VecEnv (channel-first images, as the training env)."""
     vec_env: VecEnv = DummyVecEnv([lambda: Monitor(make_env(env_id, obs_type, env_kwargs=env_kwargs))])
@@ -122,6 +130,7 @@ class TrainConfig:
     :param eval_deterministic: evaluate the policy's mean action (and the filter's means)
     :param eval_seed: seed of the evaluation env (None: ``seed + 10000``)
     :param checkpoint_every: simulator steps between checkpoints (model and replay buffer; only the latest is kept)
+    :param n_envs: training envs, each in its own process when more than one; the updates per agent step stay the same
     :param device: "auto", "cpu" or "cuda"
     :param threads: torch CPU threads (None: torch's default; 1 is often fastest for small networks on a busy CPU)
     :param verbose: 0 quiet, 1 logs and evaluations on stdout
@@ -140,6 +149,7 @@ class TrainConfig:
     eval_deterministic: bool = True
     eval_seed: int | None = None
     checkpoint_every: int = 100_000
+    n_envs: int = 1
     device: str = "auto"
     threads: int | None = None
     verbose: int = 1
@@ -148,7 +158,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"Unknown preset {self.preset!r}; valid presets: {sorted(PRESETS)}")
-        for name in ("sim_steps", "eval_every", "eval_episodes", "checkpoint_every"):
+        for name in ("sim_steps", "eval_every", "eval_episodes", "checkpoint_every", "n_envs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
@@ -249,7 +259,7 @@ def train(config: TrainConfig, out: str | Path | None = None) -> Path:
         raise FileExistsError(
             f"{run_dir} already holds a run: continue it with `train --resume {run_dir}` or pick another --out"
         )
-    env = make_env(config.env, config.obs_type, env_kwargs=config.env_kwargs)
+    env = make_train_env(config)
     run_dir.mkdir(parents=True, exist_ok=True)
     action_repeat = action_repeat_of(env)
     hyperparams = resolved_hyperparams(config, env)
@@ -298,7 +308,7 @@ def resume(run_dir: str | Path, sim_steps: int | None = None) -> Path:
             f"No checkpoint (model and replay buffer) in {run_dir / CHECKPOINT_DIR} to resume from: "
             f"the run stopped before its first checkpoint; delete the folder and start it again with `train`"
         )
-    env = make_env(config.env, config.obs_type, env_kwargs=config.env_kwargs)
+    env = make_train_env(config)
     model = DSSLAC.load(checkpoint.model, env=env, device=config.device)
     model.load_replay_buffer(checkpoint.replay_buffer)
     model.verbose = config.verbose
@@ -319,7 +329,7 @@ def _learn(model: DSSLAC, config: TrainConfig, run_dir: Path, eval_seed: int, re
         eval_env,
         cost_limit=model.cost_limit,
         n_eval_episodes=config.eval_episodes,
-        eval_freq=max(config.eval_every // action_repeat, 1),
+        eval_freq=max(config.eval_every // action_repeat // model.n_envs, 1),  # counted in env.step calls
         log_path=str(run_dir),
         best_model_save_path=str(run_dir),
         deterministic=config.eval_deterministic,
@@ -328,7 +338,7 @@ def _learn(model: DSSLAC, config: TrainConfig, run_dir: Path, eval_seed: int, re
     if resumed and (run_dir / "evaluations.npz").is_file():
         evaluation.restore(str(run_dir / "evaluations.npz"), start)
     checkpoints = LatestCheckpointCallback(
-        save_freq=max(config.checkpoint_every // action_repeat, 1),
+        save_freq=max(config.checkpoint_every // action_repeat // model.n_envs, 1),
         save_path=str(run_dir / CHECKPOINT_DIR),
         name_prefix=CHECKPOINT_PREFIX,
         save_replay_buffer=True,
@@ -516,6 +526,7 @@ def build_parser() -> argparse.ArgumentParser:
     train_parser.add_argument("--eval-seed", type=int, help="seed of the evaluation env (default seed + 10000)")
     train_parser.add_argument("--stochastic-eval", action="store_true", help="evaluate with sampled actions")
     train_parser.add_argument("--checkpoint-every", type=int, default=100_000, help="simulator steps between checkpoints")
+    train_parser.add_argument("--n-envs", type=int, default=1, help="training envs, each in its own process")
     train_parser.add_argument("--quiet", action="store_true", help="no logs on stdout")
     train_parser.add_argument("--no-progress-bar", action="store_true")
     _add_model_flags(train_parser)
@@ -568,6 +579,7 @@ def _train_command(args: argparse.Namespace) -> None:
             eval_deterministic=not args.stochastic_eval,
             eval_seed=args.eval_seed,
             checkpoint_every=args.checkpoint_every,
+            n_envs=args.n_envs,
             device=args.device,
             threads=args.threads,
             verbose=0 if args.quiet else 1,

@@ -25,7 +25,12 @@ def cost_from_info(info: dict[str, Any]) -> float:
 
 def _attribute(env: gym.Env | VecEnv, name: str) -> Any:
     """``name`` of the (first) env, looked up through its wrappers; AttributeError when absent."""
-    return env.get_attr(name)[0] if isinstance(env, VecEnv) else env.get_wrapper_attr(name)
+    if not isinstance(env, VecEnv):
+        return env.get_wrapper_attr(name)
+    # Ask first: a SubprocVecEnv worker asked for a missing attribute dies instead of raising here
+    if not env.has_attr(name):
+        raise AttributeError(f"The envs have no attribute {name!r}")
+    return env.get_attr(name)[0]
 
 
 def action_repeat_of(env: gym.Env | VecEnv) -> int:

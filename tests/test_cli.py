@@ -85,6 +85,15 @@ def test_train_writes_the_run_folder(trained_run: Path) -> None:
     assert DSSLAC.load(trained_run / "model.zip").num_timesteps == 120
 
 
+def test_train_with_several_envs_keeps_the_evaluation_grid(tmp_path: Path) -> None:
+    out = tmp_path / "two_envs"
+    assert run_train(out, "--sim-steps=120", "--eval-every=40", "--checkpoint-every=60", "--n-envs=2") == 0
+    assert np.load(out / "evaluations.npz")["timesteps"].tolist() == [40, 80, 120]
+    assert yaml.safe_load((out / "config.yaml").read_text())["n_envs"] == 2
+    model = DSSLAC.load(out / "model.zip")
+    assert model.num_timesteps == 120 and model._n_updates == 2 * len(range(50, 121, 10))
+
+
 class Killed(Exception):
     """Stands in for the process being killed."""
 

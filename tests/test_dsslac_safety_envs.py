@@ -1,10 +1,14 @@
-"""DSSLAC on the real safety_envs tasks: pixels through the 64x64 conv model, SB3 evaluation, state observations."""
+"""DSSLAC on the real safety_envs tasks: pixels through the 64x64 conv model, SB3 evaluation, state observations,
+several tasks in subprocesses."""
+
+from functools import partial
 
 import gymnasium as gym
 import numpy as np
 import pytest
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.vec_env import SubprocVecEnv
 
 import safety_envs  # noqa: F401
 from sb3_dsslac import DSSLAC
@@ -48,3 +52,15 @@ def test_short_learn_on_state_observations() -> None:
     model.learn(60)
     assert model.observation_space.shape == env.observation_space.shape
     assert model._n_updates == 4
+
+
+def test_subproc_envs_of_two_tasks_train_with_one_update_per_agent_step() -> None:
+    # Two different tasks with the same spaces, each in its own process ("safety_envs:" imports the ids there)
+    env = SubprocVecEnv([partial(gym.make, f"safety_envs:SafetyGym/{task}-v0") for task in ("PointGoal1", "PointButton1")])
+    model = DSSLAC("LatentPolicy", env, **{**SMALL, "learning_starts": 30, "train_freq": 10, "gradient_steps": 10})
+    model.learn(60)
+    env.close()
+    assert model.num_timesteps == 60
+    assert model._n_updates == 30  # bursts after agent steps 40, 50 and 60
+    buffer = model.replay_buffer
+    assert (buffer.episode_ids[:, 0] >= 0).sum() == (buffer.episode_ids[:, 1] >= 0).sum() == 31  # 30 steps + reset frame
