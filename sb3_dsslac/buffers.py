@@ -306,14 +306,21 @@ class SequenceReplayBuffer(ReplayBuffer):
         stored = self._stored_tensors()
         offsets = th.arange(self.sequence_length + 1, device=indices.device)
         slots = (indices[:, :1] + offsets) % self.buffer_size  # (B, L+1)
-        envs = indices[:, 1:]
-        transitions = slots[:, :-1]
+        rows = slots * self.n_envs + indices[:, 1:]  # rows of the (slot, env)-flattened arrays
+
+        def take(name: str, window_rows: th.Tensor) -> th.Tensor:
+            # index_select of whole rows: several times faster than advanced indexing, on the CPU too
+            tensor = stored[name]
+            flat = tensor.view(self.buffer_size * self.n_envs, *tensor.shape[2:])
+            return flat.index_select(0, window_rows.reshape(-1)).view(*window_rows.shape, *tensor.shape[2:])
+
+        transitions = rows[:, :-1]
         return SequenceBatch(
-            observations=stored["observations"][slots, envs],
-            actions=stored["actions"][transitions, envs],
-            rewards=stored["rewards"][transitions, envs],
-            costs=stored["costs"][transitions, envs],
-            terminated=stored["terminated"][transitions, envs],
+            observations=take("observations", rows),
+            actions=take("actions", transitions),
+            rewards=take("rewards", transitions),
+            costs=take("costs", transitions),
+            terminated=take("terminated", transitions),
         )
 
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> SequenceBatch:  # type: ignore[override]
