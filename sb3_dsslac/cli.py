@@ -498,7 +498,8 @@ def _add_model_flags(parser: argparse.ArgumentParser) -> None:
         "--preset",
         choices=sorted(PRESETS),
         default="thesis",
-        help="thesis: Table 5.2; cpu: small and quick; cpu_learning: the CPU learning benchmark's",
+        help="thesis: Table 5.2; thesis_fast: the same with share_latent_batch and bf16; cpu: small and quick; "
+        "cpu_learning: the CPU learning benchmark's",
     )
     parser.add_argument("--obs-type", choices=["pixels", "state"], help="observation type (default: the env's)")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
