@@ -112,6 +112,7 @@ class DSSLAC(OffPolicyAlgorithm):
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"LatentPolicy": LatentPolicy}
     policy: LatentPolicy
     replay_buffer: SequenceReplayBuffer
+    _PRETRAIN_BURST = 100  # latent pre-training updates whose windows are drawn at once
 
     def __init__(
         self,
@@ -421,8 +422,8 @@ class DSSLAC(OffPolicyAlgorithm):
         self.policy.set_observation_statistics(self.replay_buffer.stored_observations())
         losses = []
         progress = tqdm(total=self.latent_pretrain_steps, desc="latent pre-training", disable=self.verbose < 1)
-        for done in range(0, self.latent_pretrain_steps, self._BURST):
-            n_updates = min(self._BURST, self.latent_pretrain_steps - done)
+        for done in range(0, self.latent_pretrain_steps, self._PRETRAIN_BURST):
+            n_updates = min(self._PRETRAIN_BURST, self.latent_pretrain_steps - done)
             indices = self.replay_buffer.sample_indices(n_updates, self.latent_batch_size)
             for k in range(n_updates):
                 losses.append(self._latent_update(self.replay_buffer.gather(indices[k]))["latent_loss"])
@@ -431,8 +432,6 @@ class DSSLAC(OffPolicyAlgorithm):
         self.latent_pretrained = True
         if losses:
             self.logger.record("train/pretrain_latent_loss", float(th.stack(losses[-100:]).mean()))
-
-    _BURST = 100  # latent pre-training updates whose windows are drawn at once
 
     def _latent_update(self, batch: SequenceBatch, features: th.Tensor | None = None) -> dict[str, th.Tensor]:
         """
