@@ -6,9 +6,10 @@ evaluation reward and cost per variant and saves a table (CSV) and a plot (PNG).
     python benchmarks/variants.py                                  # 3 seeds, 80k agent steps, 2 worker processes
     python benchmarks/variants.py --timesteps 30000 --seeds 0 1    # a quicker look
 
-Each finished run is saved at once (``<out>/variants/<variant>_seed<n>.npz``); a rerun with the same settings reuses
-the saved runs, so a killed benchmark continues where it stopped. Runs go seed by seed, so a partial benchmark still
-compares every variant.
+Each finished run is saved at once (``<out>/variants/<variant>_seed<n>_<timesteps>.npz``); a rerun with the same
+settings reuses the saved runs, so a killed benchmark continues where it stopped. Runs go seed by seed, so a partial
+benchmark still compares every variant. A run's file may hold per-evaluation means only (``rewards`` and ``costs`` of
+shape (n_evaluations, 1)): the table and the plot use only the means.
 """
 
 import argparse
@@ -69,13 +70,13 @@ def main() -> None:
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 
-    curves: dict[str, list[Any]] = {variant: [] for variant in args.variants}
+    curves_by_seed: dict[str, dict[int, LearningCurve]] = {variant: {} for variant in args.variants}
     jobs = []
     for seed in args.seeds:
         for variant in args.variants:
             path = run_path(args.out, variant, seed, args.timesteps)
             if path.exists():
-                curves[variant].append(load_run(path))
+                curves_by_seed[variant][seed] = load_run(path)
                 print(f"reusing {path}", flush=True)
             else:
                 jobs.append((variant, seed, args.env, args.timesteps, args.eval_freq, args.eval_episodes))
@@ -83,26 +84,36 @@ def main() -> None:
         for future in as_completed([pool.submit(run, job) for job in jobs]):
             variant, seed, curve = future.result()
             save_run(run_path(args.out, variant, seed, args.timesteps), curve)
-            curves[variant].append(curve)
+            curves_by_seed[variant][seed] = curve
             final_reward, final_cost = curve.rewards[-1].mean(), curve.costs[-1].mean()
             print(f"done: {variant}, seed {seed}: final reward {final_reward:.2f}, cost {final_cost:.2f}", flush=True)
 
+    curves = {variant: [runs[seed] for seed in sorted(runs)] for variant, runs in curves_by_seed.items()}
+    budget = next(iter(curves.values()))[0].cost_limit
     rows = []
     for variant, runs in curves.items():
         final_rewards = np.array([curve.rewards[-1].mean() for curve in runs])
         final_costs = np.array([curve.costs[-1].mean() for curve in runs])
-        minutes = np.mean([curve.minutes for curve in runs])
-        rows.append((variant, final_rewards.mean(), final_rewards.std(), final_costs.mean(), final_costs.std(), minutes))
-    budget = next(iter(curves.values()))[0].cost_limit
-    header = f"{'variant':<22}{'final eval reward':>22}{'final eval cost':>22}{'min/run':>9}"
+        minutes = np.nanmean([curve.minutes for curve in runs]) if any(np.isfinite(c.minutes) for c in runs) else np.nan
+        under_budget = f"{int((final_costs <= budget).sum())}/{len(runs)}"
+        per_seed = " ".join(f"{reward:.1f}/{cost:.1f}" for reward, cost in zip(final_rewards, final_costs, strict=True))
+        reward, reward_std, cost, cost_std = final_rewards.mean(), final_rewards.std(), final_costs.mean(), final_costs.std()
+        rows.append((variant, reward, reward_std, cost, cost_std, minutes, under_budget, per_seed))
+    header = f"{'variant':<22}{'final eval reward':>22}{'final eval cost':>22}{'under budget':>14}{'min/run':>9}"
     print(f"\n{args.env} (state), {args.timesteps} agent steps, seeds {args.seeds}, budget {budget:g}")
     print(header)
-    for variant, reward, reward_std, cost, cost_std, minutes in rows:
-        print(f"{variant:<22}{reward:>14.2f} ± {reward_std:<5.2f}{cost:>14.2f} ± {cost_std:<5.2f}{minutes:>9.1f}")
+    for variant, reward, reward_std, cost, cost_std, minutes, under_budget, _ in rows:
+        print(
+            f"{variant:<22}{reward:>14.2f} ± {reward_std:<5.2f}{cost:>14.2f} ± {cost_std:<5.2f}{under_budget:>14}"
+            f"{minutes:>9.1f}"
+        )
+    print(f"final reward/cost of seeds {sorted(args.seeds)}:")
+    for variant, *_, per_seed in rows:
+        print(f"  {variant:<22}{per_seed}")
     with open(args.out / "variants.csv", "w", newline="") as file:
         writer = csv.writer(file)
-        writer.writerow(["variant", "reward_mean", "reward_std", "cost_mean", "cost_std", "minutes_per_run"])
-        writer.writerows([(row[0], *(f"{value:.4f}" for value in row[1:])) for row in rows])
+        writer.writerow(["variant", "reward_mean", "reward_std", "cost_mean", "cost_std", "minutes_per_run", "under_budget"])
+        writer.writerows([(row[0], *(f"{value:.4f}" for value in row[1:6]), row[6]) for row in rows])
     plot(args.out / "variants.png", curves, budget)
     print(f"wrote {args.out / 'variants.csv'} and variants.png")
 
