@@ -26,12 +26,13 @@ from sb3_dsslac.presets import preset_hyperparams
 COST_CONSTRAINT = "eval_cost_over_budget"
 
 
-def sample_dsslac_params(trial: optuna.Trial) -> dict[str, Any]:
+def sample_dsslac_params(trial: optuna.Trial, lagrange: str = "sgd") -> dict[str, Any]:
     """
     Sample DSSLAC keywords (rl-zoo3 style). Discounts are searched as ``1 - gamma`` on a log scale, batch sizes as
     powers of two; the derived values are stored as user attributes of the trial.
 
     :param trial: the Optuna trial
+    :param lagrange: the multiplier rule the trials use: "pid" searches its three gains instead of the SGD step size
     :return: DSSLAC keywords
     """
     gamma = 1.0 - trial.suggest_float("one_minus_gamma", 1e-3, 5e-2, log=True)
@@ -52,6 +53,12 @@ def sample_dsslac_params(trial: optuna.Trial) -> dict[str, Any]:
         "latent_batch_size": latent_batch_size,
         "sequence_length": trial.suggest_int("sequence_length", 4, 10),
     }
+    if lagrange == "pid":
+        # Gains per unit of episode cost over the budget; the defaults (0.05, 0.005, 0.02) swung the multiplier 0..4.9
+        del params["lagrange_learning_rate"]
+        params["pid_kp"] = trial.suggest_float("pid_kp", 1e-4, 1e-1, log=True)
+        params["pid_ki"] = trial.suggest_float("pid_ki", 1e-5, 1e-2, log=True)
+        params["pid_kd"] = trial.suggest_float("pid_kd", 1e-5, 1e-1, log=True)
     for name in ("gamma", "cost_gamma", "batch_size", "latent_batch_size"):
         trial.set_user_attr(name, params[name])
     return params
@@ -118,7 +125,8 @@ def objective(trial: optuna.Trial, spec: TuneSpec) -> float:
     if spec.threads is not None:
         th.set_num_threads(spec.threads)
     env = make_env(spec.env, spec.obs_type)
-    hyperparams = preset_hyperparams(spec.preset, {**sample_dsslac_params(trial), **spec.hyperparams})
+    lagrange = preset_hyperparams(spec.preset, spec.hyperparams).get("lagrange", "sgd")
+    hyperparams = preset_hyperparams(spec.preset, {**sample_dsslac_params(trial, lagrange), **spec.hyperparams})
     agent_steps = max(spec.sim_steps // action_repeat_of(env), 1)
     eval_env = make_eval_env(spec.env, seed=trial.number, obs_type=spec.obs_type)
     model = DSSLAC("LatentPolicy", env, device=spec.device, **hyperparams)

@@ -43,6 +43,14 @@ def test_sampler_gives_valid_dsslac_keywords() -> None:
         assert model.n_quantiles == params["n_quantiles"] and model.sequence_length == params["sequence_length"]
 
 
+def test_the_pid_rule_searches_its_gains() -> None:
+    trial = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0)).ask()
+    params = sample_dsslac_params(trial, lagrange="pid")
+    assert {"pid_kp", "pid_ki", "pid_kd"} <= set(trial.params) and "lagrange_learning_rate" not in params
+    model = DSSLAC("LatentPolicy", HazardPointEnv(), lagrange="pid", **{**params, "policy_kwargs": SMALL_POLICY})
+    assert model.pid_gains == (params["pid_kp"], params["pid_ki"], params["pid_kd"])
+
+
 def test_a_pruned_trial_stops_early_and_records_its_cost() -> None:
     spec = TuneSpec(env=TINY_ENV, sim_steps=120, hyperparams=TINY, n_evaluations=4, eval_episodes=1)
     study = optuna.create_study(direction="maximize", pruner=optuna.pruners.ThresholdPruner(lower=1e9))
