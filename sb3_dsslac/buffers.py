@@ -253,15 +253,26 @@ class SequenceReplayBuffer(ReplayBuffer):
         return self.observations[self.episode_ids >= 0]
 
     def _stored_tensors(self) -> dict[str, th.Tensor]:
-        """The sampled arrays as tensors on ``self.device``: views of the host arrays on the CPU, else the device copy."""
+        """
+        The sampled arrays as tensors on ``self.device``: views of the host arrays on the CPU, else the device copy as
+        of the last :meth:`_sync_device_copy` (made then if there is none yet).
+        """
         if self.device.type == "cpu":
             return {name: th.from_numpy(getattr(self, name)) for name in self._SAMPLED}
         if self._device_copy is None:
+            self._sync_device_copy()
+        assert self._device_copy is not None
+        return self._device_copy
+
+    def _sync_device_copy(self) -> None:
+        """On a GPU, make the device copy, or bring it up to date with the records written since the last sync."""
+        if self.device.type == "cpu":
+            return
+        if self._device_copy is None:
             self._device_copy = {name: th.from_numpy(getattr(self, name)).to(self.device) for name in self._SAMPLED}
             self._n_records_on_device = self._n_records.copy()
-        else:
+        elif not np.array_equal(self._n_records, self._n_records_on_device):  # every `add` writes a record
             self._upload_new_records()
-        return self._device_copy
 
     def _upload_new_records(self) -> None:
         """Copy the slots written since the last upload (and the record before them, whose transition fields change
@@ -294,7 +305,7 @@ class SequenceReplayBuffer(ReplayBuffer):
                 f"steps ({self.sequence_length + 1} frames) of one episode, and shorter episodes give no window"
             )
         starts, envs = self._sample_starts(n_batches * batch_size)
-        self._stored_tensors()  # upload the new records now, not inside the updates
+        self._sync_device_copy()  # upload the new records once per burst, not inside the updates
         indices = np.stack([starts, envs], axis=-1).reshape(n_batches, batch_size, 2)
         return th.as_tensor(indices).to(self.device)
 
