@@ -9,9 +9,9 @@ import argparse
 import csv
 import shlex
 import sys
-from functools import partial
 from dataclasses import asdict, dataclass, field, fields
 from datetime import datetime
+from functools import partial
 from pathlib import Path
 from typing import Any
 

@@ -1,6 +1,7 @@
 """The Lagrange multiplier of the cost constraint and the callback that updates it on-policy."""
 
 import math
+
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
