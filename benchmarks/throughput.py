@@ -53,8 +53,7 @@ class ThesisStyleUpdates:
         model._update_targets = self._python_loop_polyak  # type: ignore[method-assign]
         buffer = model.replay_buffer
         length = buffer.sequence_length
-        every = np.arange(buffer.buffer_size * buffer.n_envs)
-        valid = every[buffer._windows_valid(every // buffer.n_envs, every % buffer.n_envs, length)]
+        valid = buffer.valid_windows(length)
         starts, envs = valid // buffer.n_envs, valid % buffer.n_envs
         slots = (starts[:, None] + np.arange(length + 1)) % buffer.buffer_size
         # One stored sequence per window: a list of references to its frames (frames are shared, as LazyFrames are)

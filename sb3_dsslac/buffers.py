@@ -237,16 +237,22 @@ class SequenceReplayBuffer(ReplayBuffer):
             n_accepted += len(flat)
         if n_accepted < batch_size:
             # Few valid windows (or bad luck): enumerate them all
-            every = np.arange(n_candidates)
-            valid = every[self._windows_valid(every // self.n_envs, every % self.n_envs, self.sequence_length)]
+            valid = self.valid_windows(self.sequence_length, n_rows)
             accepted.append(valid[np.random.randint(0, len(valid), size=batch_size - n_accepted)])
         flat = np.concatenate(accepted)[:batch_size]
         return flat // self.n_envs, flat % self.n_envs
 
+    def valid_windows(self, length: int, n_rows: int | None = None) -> np.ndarray:
+        """
+        Every stored window of ``length`` transitions starting in the first ``n_rows`` slots (default: all), as flat
+        indices ``start_slot * n_envs + env``, in storage order.
+        """
+        every = np.arange((self.buffer_size if n_rows is None else n_rows) * self.n_envs)
+        return every[self._windows_valid(every // self.n_envs, every % self.n_envs, length)]
+
     def _count_steps(self) -> int:
         """Number of stored transitions (records followed by a record of the same episode)."""
-        every = np.arange(self.buffer_size * self.n_envs)
-        return int(self._windows_valid(every // self.n_envs, every % self.n_envs, 1).sum())
+        return len(self.valid_windows(1))
 
     def stored_observations(self) -> np.ndarray:
         """Every frame written so far, (n_frames, *obs_shape), in storage order."""
