@@ -17,7 +17,7 @@ from optuna.storages import JournalStorage
 from optuna.storages.journal import JournalFileBackend
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_dsslac.cli import make_env, make_eval_env
+from sb3_dsslac.envs import make_env, make_eval_env
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.env_info import action_repeat_of
 from sb3_dsslac.evaluation import CostEvalCallback

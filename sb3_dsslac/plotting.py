@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from sb3_dsslac.cli import CONFIG_FILE, load_config
+from sb3_dsslac.runs import CONFIG_FILE, load_config
 from sb3_dsslac.evaluation import PPO_REFERENCE, THESIS_DSSLAC_SCORES, normalised_scores
 
 

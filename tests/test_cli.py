@@ -9,7 +9,9 @@ import torch as th
 import yaml
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.cli import TrainConfig, find_checkpoint, main, side_by_side, train
+from sb3_dsslac.cli import main
+from sb3_dsslac.rollouts import side_by_side
+from sb3_dsslac.runs import TrainConfig, find_checkpoint, train
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import small_model
 
