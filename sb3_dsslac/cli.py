@@ -88,7 +88,12 @@ def build_parser() -> argparse.ArgumentParser:
     train_parser.add_argument("--eval-every", type=int, default=25_000, help="simulator steps between evaluations")
     train_parser.add_argument("--eval-episodes", type=int, default=10)
     train_parser.add_argument("--eval-seed", type=int, help="seed of the evaluation env (default seed + 10000)")
-    train_parser.add_argument("--stochastic-eval", action="store_true", help="evaluate with sampled actions")
+    train_parser.add_argument(
+        "--deterministic-eval",
+        action="store_true",
+        help="evaluate with the filter's means and the mean action (default: sampled, the thesis's protocol)",
+    )
+    train_parser.add_argument("--stochastic-eval", action="store_true", help="the default; kept for old command lines")
     train_parser.add_argument("--checkpoint-every", type=int, default=100_000, help="simulator steps between checkpoints")
     train_parser.add_argument("--n-envs", type=int, default=1, help="training envs, each in its own process")
     train_parser.add_argument("--quiet", action="store_true", help="no logs on stdout")
@@ -104,7 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
     eval_parser.add_argument("--env", help="env id (default: the model's run's)")
     eval_parser.add_argument("--episodes", type=int, default=10)
     eval_parser.add_argument("--seed", type=int, default=0)
-    eval_parser.add_argument("--stochastic", action="store_true", help="sample actions instead of the mean")
+    policy = eval_parser.add_mutually_exclusive_group()
+    policy.add_argument("--stochastic", action="store_true", help="sample the filter and the action (the thesis's protocol)")
+    policy.add_argument("--deterministic", action="store_true", help="the filter's means and the mean action")
     eval_parser.add_argument("--video", help="video file (.mp4 or .gif)")
     eval_parser.add_argument("--video-episodes", type=int, default=1, help="episodes recorded into the video")
     eval_parser.add_argument("--obs-type", choices=["pixels", "state"])
@@ -140,7 +147,7 @@ def _train_command(args: argparse.Namespace) -> None:
             obs_type=args.obs_type,
             eval_every=args.eval_every,
             eval_episodes=args.eval_episodes,
-            eval_deterministic=not args.stochastic_eval,
+            eval_deterministic=args.deterministic_eval,
             eval_seed=args.eval_seed,
             checkpoint_every=args.checkpoint_every,
             n_envs=args.n_envs,
@@ -167,19 +174,23 @@ def _evaluate_command(args: argparse.Namespace) -> None:
         raise ValueError(f"{args.model} is not in a run folder: pass the env id (--env)")
     env_id = args.env or run_config.env  # type: ignore[union-attr]
     same_env = run_config is not None and run_config.env == env_id
+    if args.deterministic or args.stochastic:
+        deterministic = args.deterministic
+    else:  # the protocol of the model's run, else the thesis's
+        deterministic = run_config.eval_deterministic if run_config is not None else False
     model = DSSLAC.load(args.model, device=args.device)
     results = evaluate(
         model,
         env_id=env_id,
         episodes=args.episodes,
-        deterministic=not args.stochastic,
+        deterministic=deterministic,
         seed=args.seed,
         video=args.video,
         video_episodes=args.video_episodes,
         obs_type=args.obs_type or (run_config.obs_type if same_env else None),  # type: ignore[union-attr]
         env_kwargs=run_config.env_kwargs if same_env else None,  # type: ignore[union-attr]
     )
-    print(format_episodes(results, model.cost_limit))
+    print(format_episodes(results, model.cost_limit, deterministic))
     if args.video:
         print(f"video: {args.video}")
 

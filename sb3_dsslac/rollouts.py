@@ -9,7 +9,7 @@ from tqdm.auto import tqdm
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.env_info import cost_from_info
 from sb3_dsslac.envs import make_env
-from sb3_dsslac.evaluation import EpisodeResults
+from sb3_dsslac.evaluation import EpisodeResults, eval_policy_name
 
 
 def side_by_side(observation: np.ndarray, view: np.ndarray) -> np.ndarray:
@@ -33,7 +33,7 @@ def evaluate(
     model: DSSLAC,
     env_id: str,
     episodes: int = 10,
-    deterministic: bool = True,
+    deterministic: bool = False,
     seed: int = 0,
     video: str | Path | None = None,
     video_episodes: int = 1,
@@ -47,7 +47,7 @@ def evaluate(
     :param model: the agent
     :param env_id: the env (see ``make_env``)
     :param episodes: episodes to run; episode ``i`` is reset with seed ``seed + i``
-    :param deterministic: act with the mean action (and the filter's means)
+    :param deterministic: act with the mean action and the filter's means (False: sampled, the thesis's protocol)
     :param seed: seed of the first episode
     :param video: the video file (.mp4 or .gif); None writes none
     :param video_episodes: episodes recorded into the video
@@ -93,9 +93,16 @@ def evaluate(
     return EpisodeResults(rewards, costs, lengths)
 
 
-def format_episodes(results: EpisodeResults, cost_limit: float | None = None) -> str:
-    """A text table of the episodes, then their mean and standard deviation."""
-    lines = [f"{'episode':>7}  {'reward':>9}  {'cost':>7}  {'length':>6}"]
+def format_episodes(results: EpisodeResults, cost_limit: float | None = None, deterministic: bool | None = None) -> str:
+    """
+    A text table of the episodes, then their mean and standard deviation.
+
+    :param results: the episodes
+    :param cost_limit: the budget; given, a last line counts the episodes within it
+    :param deterministic: how the episodes were run; given, a first line says so
+    """
+    lines = [] if deterministic is None else [f"policy: {eval_policy_name(deterministic)}"]
+    lines.append(f"{'episode':>7}  {'reward':>9}  {'cost':>7}  {'length':>6}")
     for index, (reward, cost, length) in enumerate(zip(*results, strict=True)):
         lines.append(f"{index:>7}  {reward:>9.3f}  {cost:>7.1f}  {length:>6}")
     lines.append(

@@ -20,7 +20,7 @@ from stable_baselines3.common.logger import CSVOutputFormat, Logger, make_output
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.env_info import action_repeat_of, episode_length_of
 from sb3_dsslac.envs import make_eval_env, make_train_env
-from sb3_dsslac.evaluation import CostEvalCallback
+from sb3_dsslac.evaluation import CostEvalCallback, eval_policy_name
 from sb3_dsslac.presets import PRESETS, preset_hyperparams
 from sb3_dsslac.version import __version__
 
@@ -45,7 +45,8 @@ class TrainConfig:
     :param env_kwargs: other keywords of the env
     :param eval_every: simulator steps between evaluations
     :param eval_episodes: episodes per evaluation
-    :param eval_deterministic: evaluate the policy's mean action (and the filter's means)
+    :param eval_deterministic: evaluate the policy's mean action and the filter's means; False (the thesis's protocol)
+        samples both
     :param eval_seed: seed of the evaluation env (None: ``seed + 10000``)
     :param checkpoint_every: simulator steps between checkpoints (model and replay buffer; only the latest is kept)
     :param n_envs: training envs, each in its own process when more than one; the updates per agent step stay the same
@@ -64,7 +65,7 @@ class TrainConfig:
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     eval_every: int = 25_000
     eval_episodes: int = 10
-    eval_deterministic: bool = True
+    eval_deterministic: bool = False
     eval_seed: int | None = None
     checkpoint_every: int = 100_000
     n_envs: int = 1
@@ -102,6 +103,8 @@ def load_config(run_dir: str | Path) -> TrainConfig:
     if not path.is_file():
         raise FileNotFoundError(f"{run_dir} is not a run folder: it has no {CONFIG_FILE}")
     saved = yaml.safe_load(path.read_text())
+    # Runs written before the field existed evaluated deterministically, the default of the time
+    saved.setdefault("eval_deterministic", True)
     return TrainConfig(**{f.name: saved[f.name] for f in fields(TrainConfig) if f.name in saved})
 
 
@@ -182,7 +185,7 @@ def train(config: TrainConfig, out: str | Path | None = None) -> Path:
     action_repeat = action_repeat_of(env)
     hyperparams = resolved_hyperparams(config, env)
     eval_seed = config.seed + EVAL_SEED_OFFSET if config.eval_seed is None else config.eval_seed
-    policy = "deterministic" if config.eval_deterministic else "stochastic"
+    policy = eval_policy_name(config.eval_deterministic)
     saved = {
         **asdict(config),
         "resolved": {
