@@ -56,7 +56,7 @@ def _flag_hyperparams(args: argparse.Namespace) -> dict[str, Any]:
     return {**hyperparams, **parse_hyperparams(args.hyperparams)}
 
 
-def _add_model_flags(parser: argparse.ArgumentParser) -> None:
+def _add_model_flags(parser: argparse.ArgumentParser, threads_help: str) -> None:
     parser.add_argument(
         "--preset",
         choices=sorted(PRESETS),
@@ -66,7 +66,7 @@ def _add_model_flags(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--obs-type", choices=["pixels", "state"], help="observation type (default: the env's)")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
-    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's; 1 is often fastest on a busy CPU)")
+    parser.add_argument("--threads", type=int, help=threads_help)
     group = parser.add_argument_group("hyperparameters (on top of the preset; agent steps)")
     for name, kind in HYPERPARAM_FLAGS.items():
         group.add_argument(f"--{name.replace('_', '-')}", dest=name, type=kind, metavar=kind.__name__.upper())
@@ -98,7 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     train_parser.add_argument("--n-envs", type=int, default=1, help="training envs, each in its own process")
     train_parser.add_argument("--quiet", action="store_true", help="no logs on stdout")
     train_parser.add_argument("--no-progress-bar", action="store_true")
-    _add_model_flags(train_parser)
+    _add_model_flags(train_parser, "torch CPU threads (default: torch's; 1 is often fastest on a busy CPU)")
 
     plot_parser = commands.add_parser("plot", help="learning curves and the normalised score table of runs")
     plot_parser.add_argument("runs", nargs="+", metavar="RUN_DIR")
@@ -121,6 +121,18 @@ def build_parser() -> argparse.ArgumentParser:
     tune_parser.add_argument("--env", required=True)
     tune_parser.add_argument("--timesteps", type=int, required=True, help="simulator steps per trial")
     tune_parser.add_argument("--n-trials", type=int, default=10, help="trials run by this process")
+    tune_parser.add_argument(
+        "--total-trials",
+        type=int,
+        help="instead of --n-trials: run trials until the study has this many finished, retrying those of dead workers",
+    )
+    tune_parser.add_argument(
+        "--heartbeat-interval",
+        type=int,
+        default=60,
+        help="seconds between a running trial's heartbeats on an RDB storage; a trial silent for twice this is failed "
+        "and retried",
+    )
     tune_parser.add_argument("--storage", help="sqlite:///f.db, postgresql://..., or a journal file (*.log, *.journal)")
     tune_parser.add_argument("--study-name", default="dsslac")
     tune_parser.add_argument("--n-evaluations", type=int, default=4, help="evaluations per trial (pruning points)")
@@ -128,7 +140,10 @@ def build_parser() -> argparse.ArgumentParser:
     tune_parser.add_argument("--n-startup-trials", type=int, default=5, help="random trials before TPE and pruning")
     tune_parser.add_argument("--sampler-seed", type=int, help="seed of TPE (leave unset with several workers)")
     tune_parser.add_argument("--out", help="folder for the trials' CSV")
-    _add_model_flags(tune_parser)
+    _add_model_flags(
+        tune_parser,
+        "torch CPU threads per worker (default 1, so that several workers on one machine do not oversubscribe its cores)",
+    )
     return parser
 
 
@@ -207,7 +222,7 @@ def _tune_command(args: argparse.Namespace) -> None:
         n_evaluations=args.n_evaluations,
         eval_episodes=args.eval_episodes,
         device=args.device,
-        threads=args.threads,
+        threads=1 if args.threads is None else args.threads,
     )
     study = tune(
         spec,
@@ -216,6 +231,8 @@ def _tune_command(args: argparse.Namespace) -> None:
         study_name=args.study_name,
         n_startup_trials=args.n_startup_trials,
         sampler_seed=args.sampler_seed,
+        total_trials=args.total_trials,
+        heartbeat_interval=args.heartbeat_interval,
     )
     print(summarize_study(study))
     if args.out is not None:
