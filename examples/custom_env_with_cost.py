@@ -13,7 +13,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_dsslac.cli import TrainConfig, train
+from sb3_dsslac.runs import TrainConfig, train
 from sb3_dsslac.plotting import report
 
 

@@ -10,7 +10,8 @@ import argparse
 from pathlib import Path
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.cli import evaluate, find_run_config, format_episodes
+from sb3_dsslac.rollouts import evaluate, format_episodes
+from sb3_dsslac.runs import find_run_config
 
 parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
 parser.add_argument("model", help="a model saved in a run folder, e.g. runs/pointgoal1/model.zip")

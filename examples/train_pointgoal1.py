@@ -16,7 +16,8 @@ import argparse
 import importlib.util
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.cli import FINAL_MODEL, TrainConfig, evaluate, format_episodes, train
+from sb3_dsslac.rollouts import evaluate, format_episodes
+from sb3_dsslac.runs import FINAL_MODEL, TrainConfig, train
 from sb3_dsslac.plotting import report
 
 parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])

@@ -58,6 +58,11 @@ def evaluate_policy_with_cost(
     return EpisodeResults(np.asarray(rewards, dtype=float), np.asarray(finished, dtype=float), np.asarray(lengths))
 
 
+def eval_policy_name(deterministic: bool) -> str:
+    """How an evaluation acted: "deterministic" (the filter's means and the mean action) or "stochastic" (sampled)."""
+    return "deterministic" if deterministic else "stochastic"
+
+
 class CostEvalCallback(EvalCallback):
     """
     ``EvalCallback`` that also measures the episode cost: records ``eval/mean_cost`` and ``eval/std_cost``, writes

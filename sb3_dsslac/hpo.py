@@ -1,9 +1,12 @@
 """
 Optuna search for DS-SLAC: maximise the last evaluation's mean episode reward, with the cost budget as an Optuna
 constraint (``trial.set_constraint``: mean eval cost minus budget, feasible when <= 0), multivariate TPE and
-median pruning on the intermediate evaluations. Several processes on one storage share one study.
+median pruning on the intermediate evaluations. Several processes on one storage share one study; on an RDB storage
+a heartbeat marks the trial of a dead worker failed and the others retry it.
 """
 
+import importlib.util
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -13,11 +16,12 @@ import optuna
 import torch as th
 from optuna.pruners import MedianPruner
 from optuna.samplers import TPESampler
-from optuna.storages import JournalStorage
+from optuna.storages import JournalStorage, RDBStorage, RetryFailedTrialCallback, fail_stale_trials
 from optuna.storages.journal import JournalFileBackend
+from optuna.trial import TrialState
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_dsslac.cli import make_env, make_eval_env
+from sb3_dsslac.envs import make_env, make_eval_env
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.env_info import action_repeat_of
 from sb3_dsslac.evaluation import CostEvalCallback
@@ -106,7 +110,8 @@ class TuneSpec:
     :param n_evaluations: evaluations per trial, evenly spaced (the pruner's steps)
     :param eval_episodes: episodes per evaluation
     :param device: torch device
-    :param threads: torch CPU threads (None: torch's default)
+    :param threads: torch CPU threads of each trial (None: torch's default, every core, which oversubscribes the
+        cores when several workers share a machine)
     """
 
     env: str
@@ -117,7 +122,7 @@ class TuneSpec:
     n_evaluations: int = 4
     eval_episodes: int = 5
     device: str = "auto"
-    threads: int | None = None
+    threads: int | None = 1
 
 
 def objective(trial: optuna.Trial, spec: TuneSpec) -> float:
@@ -156,14 +161,55 @@ def objective(trial: optuna.Trial, spec: TuneSpec) -> float:
     return float(callback.last_mean_reward)
 
 
-def make_storage(storage: str | None) -> str | JournalStorage | None:
+def storage_url(url: str) -> str:
+    """
+    An RDB URL with a driver SQLAlchemy can load: a plain ``postgresql://`` URL means psycopg2 to SQLAlchemy 2, so it
+    becomes ``postgresql+psycopg://`` (psycopg 3, the optuna extra's driver) when only psycopg 3 is installed.
+    """
+    if url.startswith("postgresql://") and importlib.util.find_spec("psycopg2") is None:
+        if importlib.util.find_spec("psycopg") is not None:
+            return "postgresql+psycopg://" + url.removeprefix("postgresql://")
+    return url
+
+
+def make_storage(
+    storage: str | None, heartbeat_interval: int = 60, grace_period: int | None = None, max_retry: int = 3
+) -> RDBStorage | JournalStorage | None:
     """
     ``None`` (in memory), a journal file (``*.log`` / ``*.journal``: several processes on one machine or a shared
     file system) or an RDB URL (``sqlite:///study.db``, ``postgresql://user:password@host/db`` for several machines).
+
+    On an RDB storage every running trial beats every ``heartbeat_interval`` seconds; a trial whose worker died (no beat
+    for ``grace_period`` seconds, default twice the interval) is marked failed by the next worker that starts a trial,
+    and a copy with the same parameters is queued for the workers (up to ``max_retry`` times per trial).
     """
-    if storage is not None and storage.endswith((".log", ".journal")):
+    if storage is None:
+        return None
+    if storage.endswith((".log", ".journal")):
         return JournalStorage(JournalFileBackend(storage))
-    return storage
+    return RDBStorage(
+        storage_url(storage),
+        heartbeat_interval=heartbeat_interval,
+        grace_period=grace_period,
+        heartbeat_stale_trial_callback=RetryFailedTrialCallback(max_retry=max_retry),
+    )
+
+
+def _finish_study(study: optuna.Study, objective: Any, total_trials: int, poll_seconds: float) -> None:
+    """
+    Run trials until ``total_trials`` of the study are finished (complete or pruned), counting the other workers'
+    running trials as on their way; while those cover the rest, wait and look for dead workers' trials to retry.
+    """
+    while True:
+        fail_stale_trials(study)  # a no-op without heartbeats
+        states = [trial.state for trial in study.get_trials(deepcopy=False)]
+        finished = states.count(TrialState.COMPLETE) + states.count(TrialState.PRUNED)
+        if finished >= total_trials:
+            return
+        if TrialState.WAITING in states or finished + states.count(TrialState.RUNNING) < total_trials:
+            study.optimize(objective, n_trials=1, gc_after_trial=True)
+        else:
+            time.sleep(poll_seconds)
 
 
 def tune(
@@ -174,22 +220,29 @@ def tune(
     n_startup_trials: int = 5,
     sampler_seed: int | None = None,
     show_progress_bar: bool = True,
+    total_trials: int | None = None,
+    heartbeat_interval: int = 60,
 ) -> optuna.Study:
     """
-    Run ``n_trials`` trials in this process on the study ``study_name`` (created or joined: ``load_if_exists``).
+    Run ``n_trials`` trials in this process on the study ``study_name`` (created or joined: ``load_if_exists``), or,
+    with ``total_trials``, trials until the study has that many finished, whichever worker runs them.
 
     :param spec: what each trial trains
-    :param n_trials: trials of this process
+    :param n_trials: trials of this process (ignored with ``total_trials``)
     :param storage: see ``make_storage``
     :param study_name: the study's name in the storage
     :param n_startup_trials: random trials before TPE, and completed trials before the pruner prunes
     :param sampler_seed: seed of TPE (leave None when several workers share the study, or they sample alike)
     :param show_progress_bar: Optuna's progress bar over this process's trials
+    :param total_trials: finished (complete or pruned) trials of the whole study to reach; a worker waits while the
+        others' running trials cover the rest, and retries those of a worker that died (RDB storages, see
+        ``make_storage``); workers starting at once may overshoot by one trial each
+    :param heartbeat_interval: seconds between the heartbeats of a running trial on an RDB storage
     :return: the study
     """
     study = optuna.create_study(
         study_name=study_name,
-        storage=make_storage(storage),
+        storage=make_storage(storage, heartbeat_interval=heartbeat_interval),
         sampler=TPESampler(n_startup_trials=n_startup_trials, seed=sampler_seed, multivariate=True),
         pruner=MedianPruner(n_startup_trials=n_startup_trials, n_warmup_steps=spec.n_evaluations // 3),
         direction="maximize",
@@ -197,6 +250,9 @@ def tune(
     )
     study.set_user_attr("env", spec.env)
     study.set_user_attr("sim_steps_per_trial", spec.sim_steps)
+    if total_trials is not None:
+        _finish_study(study, lambda trial: objective(trial, spec), total_trials, poll_seconds=heartbeat_interval)
+        return study
     study.optimize(
         lambda trial: objective(trial, spec), n_trials=n_trials, gc_after_trial=True, show_progress_bar=show_progress_bar
     )

@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from sb3_dsslac.cli import CONFIG_FILE, load_config
-from sb3_dsslac.evaluation import PPO_REFERENCE, THESIS_DSSLAC_SCORES, normalised_scores
+from sb3_dsslac.evaluation import PPO_REFERENCE, THESIS_DSSLAC_SCORES, eval_policy_name, normalised_scores
+from sb3_dsslac.runs import CONFIG_FILE, load_config
 
 
 @dataclass
@@ -24,6 +24,7 @@ class RunResults:
     :param sim_steps: (n_evals,) simulator steps of each evaluation
     :param rewards: (n_evals, n_episodes) episode rewards
     :param costs: (n_evals, n_episodes) episode costs
+    :param eval_policy: "stochastic" (the thesis's protocol) or "deterministic", from the run's config
     """
 
     path: Path
@@ -32,6 +33,7 @@ class RunResults:
     sim_steps: np.ndarray
     rewards: np.ndarray
     costs: np.ndarray
+    eval_policy: str
 
 
 def load_run(run_dir: str | Path) -> RunResults:
@@ -50,6 +52,7 @@ def load_run(run_dir: str | Path) -> RunResults:
             sim_steps=data["timesteps"] * int(resolved["action_repeat"]),
             rewards=np.asarray(data["results"], dtype=float),
             costs=np.asarray(data["costs"], dtype=float),
+            eval_policy=eval_policy_name(config.eval_deterministic),
         )
 
 
@@ -118,7 +121,8 @@ def score_table(runs: list[RunResults]) -> pd.DataFrame:
     """
     The final evaluation of each env's runs: mean episode reward Jr and cost Jc (over episodes, then runs), their
     normalised scores (Eq. 5.1, against the unconstrained PPO of ``PPO_REFERENCE``) and the thesis's DS-SLAC scores.
-    Envs without a PPO reference get NaN scores.
+    Envs without a PPO reference get NaN scores. ``eval`` is the runs' evaluation policy ("stochastic", the thesis's
+    protocol, or "deterministic"; "mixed" when the runs of an env differ).
     """
     rows = []
     for env, env_runs in _by_env(runs).items():
@@ -128,6 +132,7 @@ def score_table(runs: list[RunResults]) -> pd.DataFrame:
         budget = env_runs[0].cost_limit
         scores = normalised_scores(reward, cost, *PPO_REFERENCE[task], budget) if task in PPO_REFERENCE else (np.nan, np.nan)
         thesis = THESIS_DSSLAC_SCORES.get(task, (np.nan, np.nan))
+        policies = {run.eval_policy for run in env_runs}
         rows.append(
             {
                 "task": task,
@@ -140,6 +145,7 @@ def score_table(runs: list[RunResults]) -> pd.DataFrame:
                 "Jc_bar": scores[1],
                 "thesis_Jr_bar": thesis[0],
                 "thesis_Jc_bar": thesis[1],
+                "eval": policies.pop() if len(policies) == 1 else "mixed",
             }
         )
     return pd.DataFrame(rows)
@@ -173,7 +179,8 @@ def report(run_dirs: list[str | Path], out: str | Path) -> str:
     markdown = to_markdown(table)
     note = (
         "Jr_bar = Jr / Jr_PPO, Jc_bar = max(0, Jc - d) / max(1e-6, Jc_PPO - d) (thesis Eq. 5.1); "
-        "thesis_* are DS-SLAC's Table 5.1 numbers (1M simulator steps)."
+        "thesis_* are DS-SLAC's Table 5.1 numbers (1M simulator steps, stochastic evaluation); "
+        f"eval: the evaluation policy of these runs ({', '.join(sorted({run.eval_policy for run in runs}))})."
     )
     (out / "scores.md").write_text(f"{markdown}\n\n{note}\n")
     return f"{markdown}\n\n{note}\n\nwrote {curves}, {out / 'scores.csv'}, {out / 'scores.md'}"

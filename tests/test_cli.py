@@ -9,7 +9,9 @@ import torch as th
 import yaml
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.cli import TrainConfig, find_checkpoint, main, side_by_side, train
+from sb3_dsslac.cli import main
+from sb3_dsslac.rollouts import side_by_side
+from sb3_dsslac.runs import TrainConfig, find_checkpoint, load_config, train
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import small_model
 
@@ -71,8 +73,8 @@ def test_train_writes_the_run_folder(trained_run: Path) -> None:
         assert (trained_run / name).is_file(), name
     assert list(trained_run.glob("events.out.tfevents.*"))
     config = yaml.safe_load((trained_run / "config.yaml").read_text())
-    assert config["sim_steps"] == 120 and config["eval_deterministic"] is True
-    assert config["resolved"]["eval_env"] == "separate env, seed 10000, deterministic policy"
+    assert config["sim_steps"] == 120 and config["eval_deterministic"] is False
+    assert config["resolved"]["eval_env"] == "separate env, seed 10000, stochastic policy"
     assert config["resolved"]["dsslac"]["episode_length"] == 30
     evaluations = np.load(trained_run / "evaluations.npz")
     assert evaluations["timesteps"].tolist() == [40, 80, 120]
@@ -150,9 +152,57 @@ def test_plot_writes_curves_and_the_score_table(trained_run: Path, tmp_path: Pat
     assert (tmp_path / "scores.md").read_text().startswith("| task |")
 
 
+def test_train_evaluates_with_the_thesis_protocol_unless_told(tmp_path: Path, monkeypatch, capsys) -> None:
+    import sb3_dsslac.evaluation
+
+    asked = []
+    original = sb3_dsslac.evaluation.evaluate_policy_with_cost
+
+    def spy(model, env, n_eval_episodes, deterministic):
+        asked.append(deterministic)
+        return original(model, env, n_eval_episodes, deterministic)
+
+    monkeypatch.setattr(sb3_dsslac.evaluation, "evaluate_policy_with_cost", spy)
+    for name, flags, deterministic in (
+        ("default", [], False),
+        ("old_flag", ["--stochastic-eval"], False),
+        ("deterministic", ["--deterministic-eval"], True),
+    ):
+        asked.clear()
+        assert run_train(tmp_path / name, "--sim-steps=20", "--eval-every=20", "--checkpoint-every=1000", *flags) == 0
+        assert asked == [deterministic], name
+        config = yaml.safe_load((tmp_path / name / "config.yaml").read_text())
+        assert config["eval_deterministic"] is deterministic
+        assert config["resolved"]["eval_env"].endswith(("deterministic" if deterministic else "stochastic") + " policy")
+    # evaluate follows the protocol of the model's run unless told
+    capsys.readouterr()
+    assert main(["evaluate", str(tmp_path / "deterministic" / "model.zip"), "--episodes", "1"]) == 0
+    assert capsys.readouterr().out.startswith("policy: deterministic\n")
+    # A run folder from before the field existed was evaluated deterministically
+    config_path = tmp_path / "default" / "config.yaml"
+    saved = yaml.safe_load(config_path.read_text())
+    del saved["eval_deterministic"]
+    config_path.write_text(yaml.safe_dump(saved))
+    assert load_config(tmp_path / "default").eval_deterministic is True
+
+
+def test_evaluate_says_which_policy(trained_run: Path, capsys, monkeypatch) -> None:
+    import sb3_dsslac.cli
+
+    used = []
+    original = sb3_dsslac.cli.evaluate
+    monkeypatch.setattr(
+        sb3_dsslac.cli, "evaluate", lambda *args, **kwargs: used.append(kwargs["deterministic"]) or original(*args, **kwargs)
+    )
+    for flags, deterministic in (([], False), (["--deterministic"], True), (["--stochastic"], False)):
+        assert main(["evaluate", str(trained_run / "model.zip"), "--episodes", "1", *flags]) == 0
+        assert capsys.readouterr().out.splitlines()[0] == f"policy: {'deterministic' if deterministic else 'stochastic'}"
+        assert used[-1] is deterministic
+
+
 def test_evaluate_prints_episodes(trained_run: Path, capsys) -> None:
     assert main(["evaluate", str(trained_run / "model.zip"), "--episodes", "3"]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    lines = capsys.readouterr().out.splitlines()[1:]
     assert lines[0].split() == ["episode", "reward", "cost", "length"]
     assert [line.split()[0] for line in lines[1:5]] == ["0", "1", "2", "mean"]
     assert all(line.split()[3] == "30" for line in lines[1:4])

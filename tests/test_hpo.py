@@ -1,17 +1,23 @@
 """Optuna search: the sampler, pruning with the cost constraint, storages, and two workers sharing one study."""
 
+import importlib.util
+import os
+import signal
 import subprocess
 import sys
+import time
+import uuid
 from pathlib import Path
 
 import numpy as np
 import optuna
 import pytest
 import torch as th
-from optuna.storages import JournalStorage
+from optuna.storages import JournalStorage, RDBStorage, RetryFailedTrialCallback
+from optuna.trial import TrialState
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.hpo import COST_CONSTRAINT, TuneSpec, make_storage, objective, sample_dsslac_params, tune
+from sb3_dsslac.hpo import COST_CONSTRAINT, TuneSpec, make_storage, objective, sample_dsslac_params, storage_url, tune
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_cli import TINY_ENV, TINY_FLAGS
 from tests.test_dsslac import SMALL_POLICY
@@ -20,6 +26,8 @@ TINY = dict(
     learning_starts=20, latent_pretrain_steps=2, train_freq=10, gradient_steps=1, buffer_size=500, policy_kwargs=SMALL_POLICY
 )
 REPO = Path(__file__).resolve().parents[1]
+# Set by .ci/postgres.sh, which starts a server on 127.0.0.1
+POSTGRES_URL = os.environ.get("DSSLAC_TEST_POSTGRES_URL")
 
 
 @pytest.fixture(autouse=True)
@@ -66,8 +74,19 @@ def test_a_pruned_trial_stops_early_and_records_its_cost() -> None:
 def test_make_storage(tmp_path: Path) -> None:
     assert make_storage(None) is None
     assert isinstance(make_storage(str(tmp_path / "study.log")), JournalStorage)
-    assert make_storage("sqlite:///study.db") == "sqlite:///study.db"
-    assert make_storage("postgresql://user:password@host/db") == "postgresql://user:password@host/db"
+    sqlite = make_storage(f"sqlite:///{tmp_path / 'study.db'}", heartbeat_interval=5)
+    assert isinstance(sqlite, RDBStorage) and (sqlite.heartbeat_interval, sqlite.grace_period) == (5, None)
+    assert isinstance(sqlite.get_heartbeat_stale_trial_callback(), RetryFailedTrialCallback)
+
+
+def test_a_plain_postgresql_url_gets_an_installed_driver() -> None:
+    assert storage_url("sqlite:///study.db") == "sqlite:///study.db"
+    assert storage_url("postgresql+psycopg2://user:password@host/db") == "postgresql+psycopg2://user:password@host/db"
+    plain = storage_url("postgresql://user:password@host/db")
+    if importlib.util.find_spec("psycopg2") is not None or importlib.util.find_spec("psycopg") is None:
+        assert plain == "postgresql://user:password@host/db"
+    else:
+        assert plain == "postgresql+psycopg://user:password@host/db"
 
 
 def test_sqlite_study_is_continued_by_a_second_call(tmp_path: Path) -> None:
@@ -98,3 +117,44 @@ def test_two_workers_share_one_study(tmp_path: Path) -> None:
         assert len(trial.intermediate_values) == 2
         assert trial.constraints[COST_CONSTRAINT] == pytest.approx(trial.user_attrs["eval_mean_costs"][-1] - 25.0)
     assert np.unique([trial.params["learning_rate"] for trial in study.trials]).size == 2
+
+
+@pytest.mark.skipif(POSTGRES_URL is None, reason="no PostgreSQL server: set DSSLAC_TEST_POSTGRES_URL (.ci/postgres.sh)")
+def test_a_killed_worker_s_trial_is_retried_on_postgresql() -> None:
+    """Two workers on one PostgreSQL study, one SIGKILLed mid-trial: its trial fails by heartbeat and the other reruns it."""
+    study_name = f"killed_{uuid.uuid4().hex[:8]}"
+    command = [sys.executable, "-m", "sb3_dsslac", "tune", "--env", TINY_ENV, "--timesteps=200", "--total-trials=2"]
+    command += ["--storage", POSTGRES_URL, "--study-name", study_name, "--n-evaluations=4", "--eval-episodes=1"]
+    command += ["--heartbeat-interval=1", *TINY_FLAGS]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+
+    def start() -> subprocess.Popen:
+        return subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    def trials() -> list[optuna.trial.FrozenTrial]:
+        try:
+            return optuna.load_study(study_name=study_name, storage=make_storage(POSTGRES_URL)).trials
+        except KeyError:  # the study is not created yet
+            return []
+
+    def wait_for(condition, what: str, timeout: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not condition():
+            assert time.monotonic() < deadline, f"timed out waiting for {what}: {trials()}"
+            time.sleep(0.2)
+
+    doomed = start()
+    wait_for(lambda: len(trials()) == 1, "the first worker's trial")
+    survivor = start()
+    # Kill the first worker between two evaluations of its trial
+    wait_for(lambda: len(trials()[0].intermediate_values) >= 1, "the first evaluation")
+    doomed.send_signal(signal.SIGKILL)
+    doomed.wait(timeout=10)
+    output = survivor.communicate(timeout=120)[0]
+    assert survivor.returncode == 0, output
+    killed, *rest = trials()
+    assert doomed.returncode == -signal.SIGKILL
+    assert killed.state == TrialState.FAIL and 1 <= len(killed.intermediate_values) < 4
+    assert [trial.state for trial in rest] == [TrialState.COMPLETE, TrialState.COMPLETE]
+    retries = [trial for trial in rest if RetryFailedTrialCallback.retried_trial_number(trial) == killed.number]
+    assert len(retries) == 1 and retries[0].params == killed.params and len(retries[0].intermediate_values) == 4

@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 
@@ -10,10 +11,15 @@ from sb3_dsslac.evaluation import PPO_REFERENCE, normalised_scores
 from sb3_dsslac.plotting import _curves, load_run, plot_learning_curves, report, score_table, task_name
 
 
-def fake_run(folder: Path, env: str, rewards: np.ndarray, costs: np.ndarray, action_repeat: int = 2) -> Path:
-    """A run folder with ``evaluations.npz`` of (n_evals, n_episodes) rewards and costs, every 25k simulator steps."""
+def fake_run(
+    folder: Path, env: str, rewards: np.ndarray, costs: np.ndarray, action_repeat: int = 2, **settings: object
+) -> Path:
+    """
+    A run folder with ``evaluations.npz`` of (n_evals, n_episodes) rewards and costs, every 25k simulator steps;
+    ``settings`` go into its config.yaml (without ``eval_deterministic`` it is a run from before the field existed).
+    """
     folder.mkdir(parents=True)
-    config = {"env": env, "seed": 0, "resolved": {"action_repeat": action_repeat, "dsslac": {"cost_limit": 25.0}}}
+    config = {"env": env, "seed": 0, **settings, "resolved": {"action_repeat": action_repeat, "dsslac": {"cost_limit": 25.0}}}
     (folder / "config.yaml").write_text(yaml.safe_dump(config))
     timesteps = 12_500 * np.arange(1, len(rewards) + 1)
     np.savez(
@@ -82,3 +88,20 @@ def test_missing_evaluations_is_a_clear_error(tmp_path: Path) -> None:
     (folder / "evaluations.npz").unlink()
     with pytest.raises(FileNotFoundError, match=r"no evaluations\.npz"):
         load_run(folder)
+
+
+def test_the_score_table_says_which_policy_was_evaluated(tmp_path: Path) -> None:
+    env, ones, zeros = "SafetyGym/PointGoal1-v0", np.ones((1, 2)), np.zeros((1, 2))
+    stochastic = fake_run(tmp_path / "stochastic", env, ones, zeros, eval_deterministic=False)
+    deterministic = fake_run(tmp_path / "deterministic", env, ones, zeros, eval_deterministic=True)
+    old = fake_run(tmp_path / "old", "SafetyGym/CarGoal1-v0", ones, zeros)
+    policies = [load_run(run).eval_policy for run in (stochastic, deterministic, old)]
+    assert policies == ["stochastic", "deterministic", "deterministic"]
+    assert score_table([load_run(stochastic)])["eval"].tolist() == ["stochastic"]
+    table = score_table([load_run(run) for run in (stochastic, deterministic, old)]).set_index("task")
+    assert table["eval"].to_dict() == {"PointGoal1": "mixed", "CarGoal1": "deterministic"}
+    report([stochastic], tmp_path / "out")
+    markdown = (tmp_path / "out" / "scores.md").read_text()
+    assert markdown.splitlines()[0].endswith("| eval |") and "| stochastic |" in markdown
+    assert "evaluation policy of these runs (stochastic)" in markdown
+    assert pd.read_csv(tmp_path / "out" / "scores.csv")["eval"].tolist() == ["stochastic"]

@@ -1,0 +1,106 @@
+"""
+rl-zoo3's own scripts with DS-SLAC registered: ``python -m sb3_dsslac.zoo train|enjoy [rl-zoo3 flags]``.
+
+``train`` is ``python -m rl_zoo3.train`` and ``enjoy`` is ``python -m rl_zoo3.enjoy``, every flag unchanged, with
+``dsslac`` added to the zoo's algorithms and to its ``-optimize`` samplers, the Safety-Gym ids registered (so
+``--gym-packages safety_envs`` is optional) and the zoo's evaluations measuring the episode cost: they log
+``eval/mean_cost`` and ``eval/std_cost``, write ``costs`` into ``evaluations.npz``, keep the best model feasibility
+first, and under ``-optimize`` set the cost constraint of each trial. Needs ``pip install "sb3_dsslac[zoo]"``.
+"""
+
+import sys
+from typing import Any
+
+import gymnasium as gym
+import optuna
+from stable_baselines3.common.callbacks import EvalCallback
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_dsslac.dsslac import DSSLAC
+from sb3_dsslac.evaluation import CostEvalCallback
+from sb3_dsslac.hpo import COST_CONSTRAINT, TrialCostEvalCallback, sample_dsslac_params
+
+ALGO = "dsslac"
+
+
+class ZooEvalCallback(CostEvalCallback):
+    """
+    The zoo's ``EvalCallback`` with the episode cost (see ``CostEvalCallback``), its budget read from the model; the
+    zoo's other algorithms, which have no budget, get SB3's plain evaluation.
+
+    Takes the keywords of ``EvalCallback``, as the zoo passes them.
+    """
+
+    def _init_callback(self) -> None:
+        super()._init_callback()
+        self.cost_limit = getattr(self.model, "cost_limit", self.cost_limit)
+
+    def _on_step(self) -> bool:
+        if not hasattr(self.model, "cost_limit"):
+            return EvalCallback._on_step(self)
+        return super()._on_step()
+
+
+class ZooTrialEvalCallback(TrialCostEvalCallback):
+    """
+    The zoo's ``TrialEvalCallback`` (same arguments) with the episode cost: reports the mean reward to the trial,
+    prunes, and at the end sets the trial's constraint (mean eval cost minus budget, feasible when <= 0).
+
+    :param eval_env: the evaluation env
+    :param trial: the Optuna trial
+    :param kwargs: the keywords of ``EvalCallback``
+    """
+
+    def __init__(self, eval_env: gym.Env | VecEnv, trial: optuna.Trial, **kwargs: Any):
+        super().__init__(trial, eval_env, **kwargs)
+
+    def _init_callback(self) -> None:
+        super()._init_callback()
+        self.cost_limit = getattr(self.model, "cost_limit", self.cost_limit)
+
+    def _on_training_end(self) -> None:
+        if self.evaluations_costs:
+            self.trial.set_constraint(COST_CONSTRAINT, self.last_mean_cost - self.cost_limit)
+
+
+def sample_zoo_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict[str, Any]) -> dict[str, Any]:
+    """The zoo's sampler signature around ``sb3_dsslac.hpo.sample_dsslac_params``: DSSLAC keywords for one trial."""
+    return sample_dsslac_params(trial)
+
+
+def convert_zoo_params(params: dict[str, Any]) -> dict[str, Any]:
+    """A finished trial's raw parameters back to DSSLAC keywords (the zoo's ``--trial-id``)."""
+    return sample_dsslac_params(optuna.trial.FixedTrial(params), lagrange="pid" if "pid_kp" in params else "sgd")
+
+
+def register() -> None:
+    """Add DS-SLAC to rl-zoo3 (algorithm, sampler, converter) and make the zoo's evaluations measure the cost."""
+    import rl_zoo3.exp_manager
+    import rl_zoo3.hyperparams_opt
+    import rl_zoo3.utils
+
+    import safety_envs  # noqa: F401 (registers SafetyGym/*)
+
+    # rl_zoo3, rl_zoo3.train, rl_zoo3.enjoy and rl_zoo3.exp_manager all hold this one dict
+    rl_zoo3.utils.ALGOS[ALGO] = DSSLAC
+    rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER[ALGO] = sample_zoo_params
+    rl_zoo3.hyperparams_opt.HYPERPARAMS_CONVERTER[ALGO] = convert_zoo_params
+    rl_zoo3.exp_manager.EvalCallback = ZooEvalCallback
+    rl_zoo3.exp_manager.TrialEvalCallback = ZooTrialEvalCallback
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``train`` or ``enjoy`` followed by rl-zoo3's flags."""
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] not in ("train", "enjoy"):
+        sys.exit("usage: python -m sb3_dsslac.zoo train|enjoy [rl-zoo3 flags] (see python -m rl_zoo3.train --help)")
+    register()
+    import rl_zoo3.enjoy
+    import rl_zoo3.train
+
+    sys.argv = [f"{sys.argv[0]} {argv[0]}", *argv[1:]]
+    (rl_zoo3.train.train if argv[0] == "train" else rl_zoo3.enjoy.enjoy)()
+
+
+if __name__ == "__main__":
+    main()
