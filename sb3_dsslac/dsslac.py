@@ -14,7 +14,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TrainFreq, TrainFrequencyUnit
-from stable_baselines3.common.utils import safe_mean
+from stable_baselines3.common.utils import safe_mean, update_learning_rate
 from torch.nn import functional as F
 from tqdm.auto import tqdm
 
@@ -69,7 +69,7 @@ class DSSLAC(OffPolicyAlgorithm):
     :param train_freq: agent steps between training bursts; with ``n_envs`` envs it counts agent steps over all envs
         (it becomes ``train_freq / n_envs`` calls of ``env.step``), so the updates per agent step stay the same
     :param gradient_steps: updates per burst (each is one latent and one actor-critic update)
-    :param latent_learning_rate: Adam step size of the latent model
+    :param latent_learning_rate: Adam step size of the latent model (None: ``policy_kwargs``' value, else 1e-4)
     :param ent_coef: entropy coefficient, "auto" (learned from 1.0) or "auto_<init>" (learned from init), or a float
     :param target_entropy: target entropy of the learned coefficient; "auto" is ``-action_dim``
     :param cost_limit: cost budget per episode (Safety-Gym: 25 per 1000 simulator steps)
@@ -80,6 +80,12 @@ class DSSLAC(OffPolicyAlgorithm):
         critic's estimate against the discounted per-step budget, every actor-critic update; for study)
     :param lagrange_init: initial Lagrange multiplier
     :param lagrange_learning_rate: SGD step size of the multiplier's raw (pre-softplus) parameter
+    :param lr_decay_milestone: agent steps (counted from the start of training, warm-up included) from which every step
+        size (actor, both critics, entropy coefficient, latent model and multiplier) is multiplied by
+        ``lr_decay_factor``; None: no decay. The code behind the thesis numbers halves them all once at 230_000 (its
+        ``MultiStepLR`` milestone 400, stepped every 1000 simulator steps after the 60k-step warm-up: 460k simulator
+        steps), which the ``thesis`` presets set
+    :param lr_decay_factor: the factor applied from ``lr_decay_milestone`` on (0.5 in the reference code)
     :param pid_kp: proportional gain of the "pid" rule (multiplier per unit of episode cost over the budget)
     :param pid_ki: integral gain of the "pid" rule
     :param pid_kd: derivative gain of the "pid" rule
@@ -138,6 +144,8 @@ class DSSLAC(OffPolicyAlgorithm):
         lagrange: str = "sgd",
         lagrange_init: float = 0.02,
         lagrange_learning_rate: float = 2e-4,
+        lr_decay_milestone: int | None = None,
+        lr_decay_factor: float = 0.5,
         pid_kp: float = 0.05,
         pid_ki: float = 0.005,
         pid_kd: float = 0.02,
@@ -195,6 +203,8 @@ class DSSLAC(OffPolicyAlgorithm):
         self.lagrange = lagrange
         self.lagrange_init = lagrange_init
         self.lagrange_learning_rate = lagrange_learning_rate
+        self.lr_decay_milestone = lr_decay_milestone
+        self.lr_decay_factor = lr_decay_factor
         self.pid_gains = (pid_kp, pid_ki, pid_kd)
         self.cost_critic = cost_critic
         self.n_quantiles = n_quantiles
@@ -232,6 +242,10 @@ class DSSLAC(OffPolicyAlgorithm):
                 )
         if not 0.0 < cvar_risk_level <= 1.0:
             raise ValueError(f"cvar_risk_level must be in (0, 1], got {cvar_risk_level}")
+        if lr_decay_milestone is not None and lr_decay_milestone < 0:
+            raise ValueError(f"lr_decay_milestone must be a number of agent steps >= 0 or None, got {lr_decay_milestone}")
+        if lr_decay_factor <= 0.0:
+            raise ValueError(f"lr_decay_factor must be > 0, got {lr_decay_factor}")
         if lagrange not in LAGRANGE_RULES:
             raise ValueError(f"Unknown lagrange rule {lagrange!r}; choose one of {', '.join(LAGRANGE_RULES)}")
         if self.episode_length is not None:
@@ -265,6 +279,18 @@ class DSSLAC(OffPolicyAlgorithm):
         """The per-step budget discounted over an episode with ``cost_gamma``: 9.184 for the thesis setting."""
         assert self.episode_length is not None
         return self.cost_budget_per_step * (1.0 - self.cost_gamma**self.episode_length) / (1.0 - self.cost_gamma)
+
+    @property
+    def lr_decay_multiplier(self) -> float:
+        """The factor on every step size now: ``lr_decay_factor`` from agent step ``lr_decay_milestone`` on, else 1."""
+        if self.lr_decay_milestone is not None and self.num_timesteps >= self.lr_decay_milestone:
+            return self.lr_decay_factor
+        return 1.0
+
+    @property
+    def current_lagrange_learning_rate(self) -> float:
+        """The multiplier's SGD step size now: ``lagrange_learning_rate`` times ``lr_decay_multiplier``."""
+        return self.lagrange_learning_rate * self.lr_decay_multiplier
 
     @property
     def lagrange_multiplier(self) -> float:
@@ -407,6 +433,23 @@ class DSSLAC(OffPolicyAlgorithm):
                 "training stopped before the weights were corrupted. Check the env's observations, rewards and costs "
                 "for NaN/inf, or lower the learning rates."
             )
+
+    def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
+        """
+        Set the step sizes for the current timestep: ``optimizers`` (actor, critics, entropy coefficient) follow
+        ``lr_schedule`` and the latent model ``latent_learning_rate``, each times ``lr_decay_multiplier``. A pure
+        function of ``num_timesteps`` and the progress, so a resumed run continues with the right step sizes.
+        """
+        if not isinstance(optimizers, list):
+            optimizers = [optimizers]
+        factor = self.lr_decay_multiplier
+        learning_rate = self.lr_schedule(self._current_progress_remaining) * factor
+        latent_learning_rate = self.latent_learning_rate * factor
+        self.logger.record("train/learning_rate", learning_rate)
+        self.logger.record("train/latent_learning_rate", latent_learning_rate)
+        for optimizer in optimizers:
+            update_learning_rate(optimizer, learning_rate)
+        update_learning_rate(self.policy.latent_optimizer, latent_learning_rate)
 
     def _latent_autocast(self) -> contextlib.AbstractContextManager:
         """bfloat16 autocast for the latent model's passes when ``bf16`` is set, else nothing."""
@@ -559,7 +602,7 @@ class DSSLAC(OffPolicyAlgorithm):
                 float(self.lagrange_raw.item()),
                 float(stats["cost_cvar"]),
                 self.discounted_cost_budget,
-                self.lagrange_learning_rate,
+                self.current_lagrange_learning_rate,
             )
             self.lagrange_raw.fill_(raw)
         if self.ent_coef_optimizer is not None:

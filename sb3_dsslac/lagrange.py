@@ -80,6 +80,7 @@ class LagrangeCallback(BaseCallback):
     - ``"pid"``: a PID Lagrangian on each finished episode's cost against ``cost_limit``;
     - ``"critic"``: nothing here; ``DSSLAC.train`` drives the multiplier from the cost critic.
 
+    The SGD rules step with ``model.current_lagrange_learning_rate`` (the step size after any ``lr_decay_milestone``).
     ``DSSLAC.learn`` attaches this callback itself.
     """
 
@@ -94,10 +95,10 @@ class LagrangeCallback(BaseCallback):
         raw = float(model.lagrange_raw.item())
         if model.lagrange == "sgd":
             for cost in costs:
-                raw = sgd_lagrange_step(raw, float(cost), model.cost_budget_per_step, model.lagrange_learning_rate)
+                raw = sgd_lagrange_step(raw, float(cost), model.cost_budget_per_step, model.current_lagrange_learning_rate)
         elif model.lagrange == "episode":
             for cost in finished:
-                raw = sgd_lagrange_step(raw, cost, model.cost_limit, model.lagrange_learning_rate)
+                raw = sgd_lagrange_step(raw, cost, model.cost_limit, model.current_lagrange_learning_rate)
         else:
             for cost in finished:
                 multiplier, model.pid_state = pid_lagrange_step(model.pid_state, cost, model.cost_limit, *model.pid_gains)
