@@ -43,6 +43,34 @@ def _has_lagrange_callback(callback: MaybeCallback) -> bool:
     return False
 
 
+# Keywords of both DSSLAC and LatentPolicy, with their defaults (the code behind the thesis numbers)
+SHARED_POLICY_KEYWORDS: dict[str, Any] = {
+    "image_noise": 0.4,
+    "cost_loss_weight": 30.0,
+    "cost_positive_weight": 100.0,
+    "latent_learning_rate": 1e-4,
+    "cost_critic": "iqn",
+}
+
+
+def _merge_shared_keywords(policy_kwargs: dict[str, Any], **given: Any) -> dict[str, Any]:
+    """
+    ``policy_kwargs`` with each of ``SHARED_POLICY_KEYWORDS`` set once: the value given to DSSLAC (None: not given),
+    else the one in ``policy_kwargs``, else the default. A ValueError names both when they are given and differ.
+    """
+    for name, default in SHARED_POLICY_KEYWORDS.items():
+        value = given[name]
+        if value is None:
+            policy_kwargs.setdefault(name, default)
+        elif name in policy_kwargs and policy_kwargs[name] != value:
+            raise ValueError(
+                f"{name}={value!r} and policy_kwargs={{{name!r}: {policy_kwargs[name]!r}}} disagree: give {name} once"
+            )
+        else:
+            policy_kwargs[name] = value
+    return policy_kwargs
+
+
 class DSSLAC(OffPolicyAlgorithm):
     """
     Distributional Safe Stochastic Latent Actor-Critic (Miranda, 2023), built on Safe SLAC (Hogewind et al., 2023).
@@ -89,14 +117,17 @@ class DSSLAC(OffPolicyAlgorithm):
     :param pid_kp: proportional gain of the "pid" rule (multiplier per unit of episode cost over the budget)
     :param pid_ki: integral gain of the "pid" rule
     :param pid_kd: derivative gain of the "pid" rule
-    :param cost_critic: "iqn" (DS-SLAC's distributional critic) or "mean" (Safe SLAC's expectation critic)
+    :param cost_critic: "iqn" (DS-SLAC's distributional critic) or "mean" (Safe SLAC's expectation critic); None:
+        ``policy_kwargs``' value, else "iqn"
     :param n_quantiles: N = N' = K, the quantile fractions sampled per update by the IQN critic and the actor
     :param cvar_risk_level: beta in (0, 1]: the actor's K fractions are drawn from U(1 - beta, 1); 1.0 is the mean
     :param max_grad_norm: gradient-norm clip of the latent model and the critics
     :param actor_max_grad_norm: gradient-norm clip of the actor (80 in the reference code)
-    :param image_noise: variance of the Gaussian observation likelihood
-    :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss
-    :param cost_positive_weight: extra weight of unsafe steps in the cost likelihood
+    :param image_noise: variance of the Gaussian observation likelihood (None: ``policy_kwargs``' value, else 0.4)
+    :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss (None: ``policy_kwargs``' value,
+        else 30)
+    :param cost_positive_weight: extra weight of unsafe steps in the cost likelihood (None: ``policy_kwargs``' value,
+        else 100)
     :param share_latent_batch: one sampled batch and one encoder pass per update: the latent model trains on the first
         ``latent_batch_size`` sequences, and the actor-critic update uses the posterior of the first ``batch_size``
         from the same features (before the latent step). False keeps the thesis's two independent batches
@@ -108,7 +139,9 @@ class DSSLAC(OffPolicyAlgorithm):
     :param replay_buffer_kwargs: extra keywords of the ``SequenceReplayBuffer``
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder
-    :param policy_kwargs: keywords of the policy (``z1_dim``, ``z2_dim``, ``feature_dim``, ``hidden_units``, ``n_cosines``)
+    :param policy_kwargs: keywords of the policy (``z1_dim``, ``z2_dim``, ``feature_dim``, ``hidden_units``, ``n_cosines``);
+        a keyword given both here and to DSSLAC (``image_noise``, ``cost_loss_weight``, ``cost_positive_weight``,
+        ``latent_learning_rate``, ``cost_critic``) must have the same value in both, else a ValueError
     :param verbose: 0 silent, 1 info (with a progress bar for the latent pre-training), 2 debug
     :param seed: random seed
     :param device: "cpu", "cuda" or "auto"; on CUDA float32 matrix products use TF32
@@ -136,7 +169,7 @@ class DSSLAC(OffPolicyAlgorithm):
         cost_gamma: float = 0.995,
         train_freq: int | tuple[int, str] = 100,
         gradient_steps: int = 100,
-        latent_learning_rate: float = 1e-4,
+        latent_learning_rate: float | None = None,
         ent_coef: str | float = "auto_4e-3",
         target_entropy: str | float = "auto",
         cost_limit: float = 25.0,
@@ -149,14 +182,14 @@ class DSSLAC(OffPolicyAlgorithm):
         pid_kp: float = 0.05,
         pid_ki: float = 0.005,
         pid_kd: float = 0.02,
-        cost_critic: str = "iqn",
+        cost_critic: str | None = None,
         n_quantiles: int = 64,
         cvar_risk_level: float = 1.0,
         max_grad_norm: float = 40.0,
         actor_max_grad_norm: float = 80.0,
-        image_noise: float = 0.4,
-        cost_loss_weight: float = 30.0,
-        cost_positive_weight: float = 100.0,
+        image_noise: float | None = None,
+        cost_loss_weight: float | None = None,
+        cost_positive_weight: float | None = None,
         share_latent_batch: bool = False,
         bf16: bool = False,
         compile_updates: bool = False,
@@ -195,7 +228,16 @@ class DSSLAC(OffPolicyAlgorithm):
         self.latent_batch_size = latent_batch_size
         self.sequence_length = sequence_length
         self.cost_gamma = cost_gamma
-        self.latent_learning_rate = latent_learning_rate
+        # A copy: the caller's dict is not ours to fill, and may be shared by several models
+        self.policy_kwargs = _merge_shared_keywords(
+            dict(self.policy_kwargs),
+            image_noise=image_noise,
+            cost_loss_weight=cost_loss_weight,
+            cost_positive_weight=cost_positive_weight,
+            latent_learning_rate=latent_learning_rate,
+            cost_critic=cost_critic,
+        )
+        self.latent_learning_rate = float(self.policy_kwargs["latent_learning_rate"])
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
         self.cost_limit = cost_limit
@@ -206,7 +248,7 @@ class DSSLAC(OffPolicyAlgorithm):
         self.lr_decay_milestone = lr_decay_milestone
         self.lr_decay_factor = lr_decay_factor
         self.pid_gains = (pid_kp, pid_ki, pid_kd)
-        self.cost_critic = cost_critic
+        self.cost_critic = str(self.policy_kwargs["cost_critic"])
         self.n_quantiles = n_quantiles
         self.cvar_risk_level = cvar_risk_level
         self.max_grad_norm = max_grad_norm
@@ -214,12 +256,6 @@ class DSSLAC(OffPolicyAlgorithm):
         self.share_latent_batch = share_latent_batch
         self.bf16 = bf16
         self.compile_updates = compile_updates
-        self.policy_kwargs.update(
-            image_noise=image_noise,
-            cost_loss_weight=cost_loss_weight,
-            cost_positive_weight=cost_positive_weight,
-            latent_learning_rate=latent_learning_rate,
-        )
         # Run state that is saved with the model (so that resuming never repeats the pre-training)
         self.latent_pretrained = False
         self.pid_state = [0.0, 0.0]  # integral, previous episode cost
@@ -249,7 +285,7 @@ class DSSLAC(OffPolicyAlgorithm):
         if lagrange not in LAGRANGE_RULES:
             raise ValueError(f"Unknown lagrange rule {lagrange!r}; choose one of {', '.join(LAGRANGE_RULES)}")
         if self.episode_length is not None:
-            self.policy_kwargs.update(cost_critic=cost_critic, cost_critic_initial_value=self.discounted_cost_budget)
+            self.policy_kwargs.setdefault("cost_critic_initial_value", self.discounted_cost_budget)
         if _init_setup_model:
             self._setup_model()
 

@@ -5,7 +5,7 @@ import pytest
 from sb3_dsslac import DSSLAC, lagrange
 from sb3_dsslac.presets import PRESETS, THESIS_LR_DECAY_MILESTONE
 from tests.synthetic_envs import HazardPointEnv
-from tests.test_dsslac import small_model
+from tests.test_dsslac import SMALL, small_model
 
 OPTIMIZERS = ("latent_optimizer", "actor_optimizer", "critic_optimizer", "cost_critic_optimizer")
 
@@ -98,3 +98,46 @@ def test_bad_milestone_keywords_are_rejected() -> None:
         small_model(HazardPointEnv(), lr_decay_factor=0.0)
     with pytest.raises(ValueError, match="lr_decay_milestone"):
         small_model(HazardPointEnv(), lr_decay_milestone=-1)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Keywords given twice
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "other"),
+    [
+        ("image_noise", 0.1, 0.2),
+        ("cost_loss_weight", 3.0, 4.0),
+        ("cost_positive_weight", 10.0, 20.0),
+        ("latent_learning_rate", 1e-3, 2e-3),
+        ("cost_critic", "mean", "iqn"),
+    ],
+)
+def test_a_keyword_given_twice_must_agree(name: str, value, other) -> None:
+    policy_kwargs = {**SMALL["policy_kwargs"], name: other}
+    with pytest.raises(ValueError, match=rf"{name}={value!r} and policy_kwargs=.*{other!r}"):
+        small_model(HazardPointEnv(), policy_kwargs=policy_kwargs, **{name: value})
+    agreeing = small_model(HazardPointEnv(), policy_kwargs={**SMALL["policy_kwargs"], name: value}, **{name: value})
+    assert agreeing.policy_kwargs[name] == value
+
+
+def test_policy_kwargs_alone_are_used_and_not_modified(tmp_path) -> None:
+    policy_kwargs = {**SMALL["policy_kwargs"], "image_noise": 0.05, "latent_learning_rate": 3e-4, "cost_critic": "mean"}
+    given = dict(policy_kwargs)
+    model = small_model(HazardPointEnv(), policy_kwargs=policy_kwargs)
+    assert policy_kwargs == given
+    assert model.policy.latent.image_std == pytest.approx(0.05**0.5)
+    assert model.latent_learning_rate == 3e-4 and model.policy.latent_optimizer.param_groups[0]["lr"] == 3e-4
+    assert model.cost_critic == "mean" and type(model.policy.cost_critic).__name__ == "MeanCostCritic"
+    default = small_model(HazardPointEnv())
+    assert default.policy.latent.image_std == pytest.approx(0.4**0.5) and default.cost_critic == "iqn"
+
+    model = small_model(HazardPointEnv(), image_noise=0.07, cost_loss_weight=5.0)
+    model.learn(45)
+    model.save(tmp_path / "model.zip")
+    loaded = DSSLAC.load(tmp_path / "model.zip", env=HazardPointEnv())
+    assert loaded.policy.latent.image_std == pytest.approx(0.07**0.5)
+    assert loaded.policy.latent.cost_loss_weight == 5.0
+    loaded.learn(10, reset_num_timesteps=False)
