@@ -559,6 +559,32 @@ class DSSLAC(OffPolicyAlgorithm):
         ac_batch = SequenceBatch(*(field[:batch_size] for field in batch))
         return {**stats, **self._actor_critic_update(ac_batch, latents.float())}
 
+    @th.no_grad()
+    def _td_targets(
+        self, batch: SequenceBatch, latents: th.Tensor, ent_coef: th.Tensor, target_taus: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """
+        TD targets of both critics for the last transition of each sequence, ``z = latents[:, -2]`` to
+        ``z' = latents[:, -1]``, with ``a' ~ pi(z')`` from the current actor; terminations stop the bootstrap, time
+        limits (truncations) do not.
+
+        :param batch: the sequences (B, L+1 frames)
+        :param latents: their posterior samples (B, L+1, z_dim)
+        :param ent_coef: the entropy coefficient (scalar or (1,))
+        :param target_taus: the target quantile fractions (B, N')
+        :return: ``r + gamma * (1 - terminated) * (min(Q1', Q2')(z', a') - alpha * log pi(a' | z'))`` (B, 1) and
+            ``c + gamma_c * (1 - terminated) * Z'_tau'(z', a')`` (B, N')
+        """
+        policy = self.policy
+        next_z = latents[:, -1]
+        not_terminated = 1.0 - batch.terminated[:, -1:]
+        next_actions, next_log_prob = policy.actor.action_log_prob(next_z)
+        next_q = th.min(*policy.critic_target(next_z, next_actions)) - ent_coef * next_log_prob.unsqueeze(-1)
+        target_q = batch.rewards[:, -1:] + not_terminated * self.gamma * next_q
+        next_quantiles = policy.cost_critic_target(next_z, next_actions, target_taus)
+        target_quantiles = batch.costs[:, -1:] + not_terminated * self.cost_gamma * next_quantiles
+        return target_q, target_quantiles
+
     def _actor_critic_update(self, batch: SequenceBatch, latents: th.Tensor) -> dict[str, th.Tensor]:
         """
         One update of the reward critic, the cost critic, the actor and the entropy coefficient on the last transition
@@ -569,20 +595,13 @@ class DSSLAC(OffPolicyAlgorithm):
         """
         policy = self.policy
         n = batch.actions.shape[0]
-        z, next_z = latents[:, -2], latents[:, -1]
+        z = latents[:, -2]
         actions = batch.actions[:, -1]
-        rewards, costs = batch.rewards[:, -1:], batch.costs[:, -1:]
-        not_terminated = 1.0 - batch.terminated[:, -1:]
         ent_coef = th.exp(self.log_ent_coef.detach()) if self.ent_coef_optimizer is not None else self.ent_coef_tensor
         multiplier = self.lagrange_multiplier
 
-        with th.no_grad():
-            next_actions, next_log_prob = policy.actor.action_log_prob(next_z)
-            next_q = th.min(*policy.critic_target(next_z, next_actions)) - ent_coef * next_log_prob.unsqueeze(-1)
-            target_q = rewards + not_terminated * self.gamma * next_q
-            target_taus = sample_taus(n, self.n_quantiles, self.device)
-            next_quantiles = policy.cost_critic_target(next_z, next_actions, target_taus)
-            target_quantiles = costs + not_terminated * self.cost_gamma * next_quantiles
+        target_taus = sample_taus(n, self.n_quantiles, self.device)
+        target_q, target_quantiles = self._td_targets(batch, latents, ent_coef, target_taus)
 
         q1, q2 = policy.critic(z, actions)
         critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)

@@ -1,8 +1,15 @@
 """Pins of the behaviour behind the thesis numbers: defaults, step-size milestone, TD targets, losses and isolation."""
 
-import pytest
+import inspect
 
-from sb3_dsslac import DSSLAC, lagrange
+import pytest
+import torch as th
+from torch import nn
+from torch.distributions import Normal, kl_divergence
+
+from sb3_dsslac import DSSLAC, LatentPolicy, lagrange
+from sb3_dsslac.buffers import SequenceBatch
+from sb3_dsslac.latent import LatentModel, LatentRollout
 from sb3_dsslac.presets import PRESETS, THESIS_LR_DECAY_MILESTONE
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import SMALL, small_model
@@ -141,3 +148,211 @@ def test_policy_kwargs_alone_are_used_and_not_modified(tmp_path) -> None:
     assert loaded.policy.latent.image_std == pytest.approx(0.07**0.5)
     assert loaded.policy.latent.cost_loss_weight == 5.0
     loaded.learn(10, reset_num_timesteps=False)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Table 5.2 and the reference code's values
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def defaults(function) -> dict:
+    return {name: p.default for name, p in inspect.signature(function).parameters.items()}
+
+
+def test_table_5_2_defaults() -> None:
+    model = DSSLAC("LatentPolicy", HazardPointEnv(max_episode_steps=500), _init_setup_model=False)
+    expected = {
+        "learning_rate": 2e-4,
+        "latent_learning_rate": 1e-4,
+        "buffer_size": 200_000,
+        "learning_starts": 30_000,  # W_p = 60k simulator steps at action repeat 2
+        "latent_pretrain_steps": 30_000,  # W_t
+        "batch_size": 64,
+        "latent_batch_size": 32,
+        "sequence_length": 10,
+        "tau": 5e-3,
+        "gamma": 0.99,
+        "cost_gamma": 0.995,
+        "gradient_steps": 100,
+        "cost_limit": 25.0,
+        "lagrange": "sgd",
+        "lagrange_init": 0.02,
+        "lagrange_learning_rate": 2e-4,
+        "n_quantiles": 64,  # N = N' = K
+        "cvar_risk_level": 1.0,
+        "max_grad_norm": 40.0,
+        "actor_max_grad_norm": 80.0,
+        "cost_critic": "iqn",
+        "ent_coef": "auto_4e-3",
+        "share_latent_batch": False,
+        "bf16": False,
+        "lr_decay_milestone": None,
+    }
+    assert {name: getattr(model, name) for name in expected} == expected
+    assert {name: model.policy_kwargs[name] for name in ("image_noise", "cost_loss_weight", "cost_positive_weight")} == {
+        "image_noise": 0.4,
+        "cost_loss_weight": 30.0,
+        "cost_positive_weight": 100.0,
+    }
+    assert model.cost_budget_per_step == pytest.approx(0.05)
+    policy = defaults(LatentPolicy.__init__)
+    assert (policy["z1_dim"], policy["z2_dim"], policy["feature_dim"], policy["hidden_units"]) == (32, 200, 200, (256, 256))
+    assert (policy["n_cosines"], policy["cost_critic_hidden_dim"]) == (64, 512)
+
+    model._setup_model()
+    assert model.train_freq.frequency == 100
+    assert th.exp(model.log_ent_coef).item() == pytest.approx(4e-3)
+    assert model.lagrange_multiplier == pytest.approx(0.02)
+    assert model.target_entropy == -2.0
+    assert model.policy.latent.image_std == pytest.approx(0.4**0.5)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# TD targets
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+class FakeTwinQ(nn.Module):
+    """Q1 = 10 z_0 + a_0, Q2 = 10 z_0 + 5: the min picks Q1 for small actions."""
+
+    def forward(self, z: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        return 10 * z[:, :1] + actions[:, :1], 10 * z[:, :1] + 5
+
+
+class FakeQuantiles(nn.Module):
+    """Z_tau = 100 z_0 + a_0 + tau."""
+
+    def forward(self, z: th.Tensor, actions: th.Tensor, taus: th.Tensor) -> th.Tensor:
+        return 100 * z[:, :1] + actions[:, :1] + taus
+
+
+def test_td_targets_on_a_hand_built_batch(monkeypatch) -> None:
+    model = small_model(HazardPointEnv(), gamma=0.9, cost_gamma=0.5)
+    policy = model.policy
+    monkeypatch.setattr(policy, "critic_target", FakeTwinQ())
+    monkeypatch.setattr(policy, "cost_critic_target", FakeQuantiles())
+
+    def action_log_prob(z: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        return th.full((z.shape[0], 2), 0.5) * z[:, :1], -z[:, 0]  # a' = 0.5 z'_0, log pi = -z'_0
+
+    monkeypatch.setattr(policy.actor, "action_log_prob", action_log_prob)
+    batch_size, steps, z_dim = 3, SMALL["sequence_length"], policy.latent.z_dim
+    # z_0 of frame t is t + 1 + 10 * sequence: the index each term reads shows in the result
+    latents = (th.arange(steps + 1.0) + 1).repeat(batch_size, 1) + 10 * th.arange(batch_size)[:, None]
+    latents = latents[..., None].expand(batch_size, steps + 1, z_dim).clone()
+    rewards = th.arange(batch_size * steps, dtype=th.float32).reshape(batch_size, steps)
+    costs = rewards * 0.1
+    # Sequence 0 runs on; 1 is terminated at its last transition; 2 was terminated at the previous one only (as a time
+    # limit truncation, the last transition bootstraps)
+    terminated = th.zeros(batch_size, steps)
+    terminated[1, -1] = 1.0
+    terminated[2, -2] = 1.0
+    batch = SequenceBatch(th.zeros(batch_size, steps + 1, 4), th.zeros(batch_size, steps, 2), rewards, costs, terminated)
+    ent_coef = th.tensor([0.2])
+    taus = th.rand(batch_size, 5)
+
+    target_q, target_quantiles = model._td_targets(batch, latents, ent_coef, taus)
+
+    assert target_q.shape == (batch_size, 1) and target_quantiles.shape == (batch_size, 5)
+    next_z0 = latents[:, -1, 0:1]
+    next_a0 = 0.5 * next_z0
+    next_q = th.minimum(10 * next_z0 + next_a0, 10 * next_z0 + 5) - 0.2 * (-next_z0)
+    alive = th.tensor([[1.0], [0.0], [1.0]])
+    th.testing.assert_close(target_q, rewards[:, -1:] + 0.9 * alive * next_q)
+    th.testing.assert_close(target_quantiles, costs[:, -1:] + 0.5 * alive * (100 * next_z0 + next_a0 + taus))
+    assert not target_q.requires_grad and not target_quantiles.requires_grad
+
+
+def test_the_update_uses_z_at_index_minus_2() -> None:
+    model = small_model(HazardPointEnv())
+    model.learn(45)
+    seen = []
+    model.policy.critic.register_forward_pre_hook(lambda module, args: seen.append(args[0].detach().clone()))
+    latents = th.randn(8, SMALL["sequence_length"] + 1, model.policy.latent.z_dim)
+    batch = model.replay_buffer.gather(model.replay_buffer.sample_indices(1, 8)[0])
+    model._actor_critic_update(batch, latents)
+    th.testing.assert_close(seen[0], latents[:, -2])
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Latent model loss
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def test_kl_is_against_n01_at_t0_and_the_teacher_forced_prior_after(monkeypatch) -> None:
+    th.manual_seed(0)
+    model = LatentModel((4,), 2, feature_dim=8, z1_dim=3, z2_dim=5, hidden_units=(16,))
+    batch, steps = 2, 4
+    rollout = LatentRollout(
+        th.randn(batch, steps + 1, 3),
+        th.rand(batch, steps + 1, 3) + 0.2,
+        th.randn(batch, steps + 1, 3),
+        th.randn(batch, steps + 1, 5),
+    )
+    monkeypatch.setattr(model, "posterior", lambda features, actions: rollout)
+    actions = th.rand(batch, steps, 2) * 2 - 1
+    zeros = th.zeros(batch, steps)
+    _, parts = model.loss(th.randn(batch, steps + 1, 4), actions, zeros, zeros, zeros)
+
+    posterior = Normal(rollout.z1_mean, rollout.z1_std)
+    expected = kl_divergence(Normal(posterior.loc[:, 0], posterior.scale[:, 0]), Normal(0.0, 1.0)).sum(dim=-1)
+    for t in range(1, steps + 1):
+        prior_mean, prior_std = model.z1_prior(rollout.z2[:, t - 1], actions[:, t - 1])  # posterior z2, real action
+        expected = expected + kl_divergence(
+            Normal(rollout.z1_mean[:, t], rollout.z1_std[:, t]), Normal(prior_mean, prior_std)
+        ).sum(dim=-1)
+    th.testing.assert_close(parts["kl"], expected.mean())
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Quantile fractions and isolation of the actor's loss
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def test_cvar_taus_reach_only_the_actor(monkeypatch) -> None:
+    model = small_model(HazardPointEnv(), cvar_risk_level=0.2)
+    model.learn(45)
+    loss_taus, target_taus, critic_taus = [], [], []
+    import sb3_dsslac.dsslac as dsslac_module
+
+    original_loss, original_targets = dsslac_module.quantile_huber_loss, model._td_targets
+    monkeypatch.setattr(
+        dsslac_module, "quantile_huber_loss", lambda c, t, taus: loss_taus.append(taus) or original_loss(c, t, taus)
+    )
+    monkeypatch.setattr(
+        model, "_td_targets", lambda b, z, e, taus: target_taus.append(taus) or original_targets(b, z, e, taus)
+    )
+    model.policy.cost_critic.register_forward_pre_hook(lambda module, args: critic_taus.append(args[2].detach()))
+    model.train(gradient_steps=2, batch_size=8)
+
+    for taus in (*loss_taus, *target_taus):  # the critic learns every quantile: U(0, 1), never the tail only
+        assert taus.min() < 0.5 and taus.max() <= 1.0
+    assert len(loss_taus) == len(target_taus) == 2
+    tail_calls = [taus for taus in critic_taus if taus.min() >= 0.8]
+    assert len(tail_calls) == 2  # one CVaR batch per update, for the actor
+    assert th.equal(critic_taus[0], loss_taus[0])  # and the critic's own forward uses its U(0, 1) fractions
+
+
+def test_the_actor_loss_leaves_the_critics_alone(monkeypatch) -> None:
+    model = small_model(HazardPointEnv())
+    model.learn(45)
+    policy = model.policy
+    critics = [*policy.critic.parameters(), *policy.cost_critic.parameters()]
+    snapshots: dict[str, list[th.Tensor]] = {}
+
+    def spy(optimizer: th.optim.Optimizer, name: str, take) -> None:
+        step = optimizer.step
+        monkeypatch.setattr(optimizer, "step", lambda *a, **k: (snapshots.__setitem__(name, take()), step(*a, **k))[1])
+
+    # The critics' gradients when their own steps are taken, and again when the actor steps
+    spy(policy.cost_critic_optimizer, "critic_grads", lambda: [p.grad.clone() for p in critics])
+    spy(policy.actor_optimizer, "grads_at_actor_step", lambda: [p.grad.clone() for p in critics])
+    actor_before = [p.detach().clone() for p in policy.actor.parameters()]
+    batch = model.replay_buffer.gather(model.replay_buffer.sample_indices(1, 8)[0])
+    latents = th.randn(8, SMALL["sequence_length"] + 1, policy.latent.z_dim)
+    model._actor_critic_update(batch, latents)
+
+    policy.critic_optimizer.zero_grad(set_to_none=False)  # the reward critic's grads came before the snapshot
+    for before, at_actor_step in zip(snapshots["critic_grads"], snapshots["grads_at_actor_step"], strict=True):
+        th.testing.assert_close(before, at_actor_step, rtol=0, atol=0)
+    assert any(not th.equal(a, p) for a, p in zip(actor_before, policy.actor.parameters(), strict=True))
