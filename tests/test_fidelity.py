@@ -7,6 +7,7 @@ import torch as th
 from torch import nn
 from torch.distributions import Normal, kl_divergence
 
+import sb3_dsslac.dsslac as dsslac_module
 from sb3_dsslac import DSSLAC, LatentPolicy, lagrange
 from sb3_dsslac.buffers import SequenceBatch
 from sb3_dsslac.latent import LatentModel, LatentRollout
@@ -283,12 +284,8 @@ def test_kl_is_against_n01_at_t0_and_the_teacher_forced_prior_after(monkeypatch)
     th.manual_seed(0)
     model = LatentModel((4,), 2, feature_dim=8, z1_dim=3, z2_dim=5, hidden_units=(16,))
     batch, steps = 2, 4
-    rollout = LatentRollout(
-        th.randn(batch, steps + 1, 3),
-        th.rand(batch, steps + 1, 3) + 0.2,
-        th.randn(batch, steps + 1, 3),
-        th.randn(batch, steps + 1, 5),
-    )
+    z1_mean, z1_std = th.randn(batch, steps + 1, 3), th.rand(batch, steps + 1, 3) + 0.2
+    rollout = LatentRollout(z1_mean, z1_std, th.randn(batch, steps + 1, 3), th.randn(batch, steps + 1, 5))
     monkeypatch.setattr(model, "posterior", lambda features, actions: rollout)
     actions = th.rand(batch, steps, 2) * 2 - 1
     zeros = th.zeros(batch, steps)
@@ -313,8 +310,6 @@ def test_cvar_taus_reach_only_the_actor(monkeypatch) -> None:
     model = small_model(HazardPointEnv(), cvar_risk_level=0.2)
     model.learn(45)
     loss_taus, target_taus, critic_taus = [], [], []
-    import sb3_dsslac.dsslac as dsslac_module
-
     original_loss, original_targets = dsslac_module.quantile_huber_loss, model._td_targets
     monkeypatch.setattr(
         dsslac_module, "quantile_huber_loss", lambda c, t, taus: loss_taus.append(taus) or original_loss(c, t, taus)
