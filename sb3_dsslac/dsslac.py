@@ -4,6 +4,7 @@ import contextlib
 import math
 import warnings
 from collections import defaultdict, deque
+from collections.abc import Iterator
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -19,7 +20,7 @@ from torch.nn import functional as F
 from tqdm.auto import tqdm
 
 from sb3_dsslac.buffers import SequenceBatch, SequenceReplayBuffer
-from sb3_dsslac.critics import quantile_huber_loss, sample_taus
+from sb3_dsslac.critics import IQNCostCritic, quantile_huber_loss, sample_taus
 from sb3_dsslac.env_info import action_repeat_of, cost_from_info, episode_length_of
 from sb3_dsslac.lagrange import (
     LAGRANGE_RULES,
@@ -31,6 +32,23 @@ from sb3_dsslac.lagrange import (
 from sb3_dsslac.policies import LatentPolicy
 
 SelfDSSLAC = TypeVar("SelfDSSLAC", bound="DSSLAC")
+
+
+@contextlib.contextmanager
+def tf32_matmul(enabled: bool) -> Iterator[None]:
+    """
+    TF32 for CUDA float32 matrix products and cuDNN convolutions inside the block when ``enabled`` (PyTorch's switches
+    are process-wide, so the previous values come back when the block ends, also on an error); nothing otherwise.
+    """
+    if not enabled:
+        yield
+        return
+    previous = th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32
+    th.backends.cuda.matmul.allow_tf32 = th.backends.cudnn.allow_tf32 = True
+    try:
+        yield
+    finally:
+        th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32 = previous
 
 
 def _has_lagrange_callback(callback: MaybeCallback) -> bool:
@@ -117,6 +135,8 @@ class DSSLAC(OffPolicyAlgorithm):
     :param pid_kp: proportional gain of the "pid" rule (multiplier per unit of episode cost over the budget)
     :param pid_ki: integral gain of the "pid" rule
     :param pid_kd: derivative gain of the "pid" rule
+    :param pid_cost_ema: smoothing of the episode costs that the "pid" rule's proportional and derivative terms act on
+        (an exponential moving average with this weight on the past; 0: each episode's own cost)
     :param cost_critic: "iqn" (DS-SLAC's distributional critic) or "mean" (Safe SLAC's expectation critic); None:
         ``policy_kwargs``' value, else "iqn"
     :param n_quantiles: N = N' = K, the quantile fractions sampled per update by the IQN critic and the actor
@@ -136,6 +156,8 @@ class DSSLAC(OffPolicyAlgorithm):
     :param compile_updates: ``torch.compile`` the latent model's posterior rollout (a loop of small MLPs, the
         launch-bound part of the update) and the cost critic; the convolutions stay eager. Costs a one-off
         compilation (about a minute) at the first update
+    :param tf32: on CUDA, float32 matrix products and convolutions use TF32 while ``learn`` runs (the process-wide
+        settings come back when it returns); the reference code ran in full float32
     :param replay_buffer_kwargs: extra keywords of the ``SequenceReplayBuffer``
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder
@@ -144,7 +166,7 @@ class DSSLAC(OffPolicyAlgorithm):
         ``latent_learning_rate``, ``cost_critic``) must have the same value in both, else a ValueError
     :param verbose: 0 silent, 1 info (with a progress bar for the latent pre-training), 2 debug
     :param seed: random seed
-    :param device: "cpu", "cuda" or "auto"; on CUDA float32 matrix products use TF32
+    :param device: "cpu", "cuda" or "auto"
     :param _init_setup_model: build the networks at construction
     """
 
@@ -182,6 +204,7 @@ class DSSLAC(OffPolicyAlgorithm):
         pid_kp: float = 0.05,
         pid_ki: float = 0.005,
         pid_kd: float = 0.02,
+        pid_cost_ema: float = 0.9,
         cost_critic: str | None = None,
         n_quantiles: int = 64,
         cvar_risk_level: float = 1.0,
@@ -193,6 +216,7 @@ class DSSLAC(OffPolicyAlgorithm):
         share_latent_batch: bool = False,
         bf16: bool = False,
         compile_updates: bool = False,
+        tf32: bool = True,
         replay_buffer_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -248,6 +272,7 @@ class DSSLAC(OffPolicyAlgorithm):
         self.lr_decay_milestone = lr_decay_milestone
         self.lr_decay_factor = lr_decay_factor
         self.pid_gains = (pid_kp, pid_ki, pid_kd)
+        self.pid_cost_ema = pid_cost_ema
         self.cost_critic = str(self.policy_kwargs["cost_critic"])
         self.n_quantiles = n_quantiles
         self.cvar_risk_level = cvar_risk_level
@@ -256,9 +281,10 @@ class DSSLAC(OffPolicyAlgorithm):
         self.share_latent_batch = share_latent_batch
         self.bf16 = bf16
         self.compile_updates = compile_updates
+        self.tf32 = tf32
         # Run state that is saved with the model (so that resuming never repeats the pre-training)
         self.latent_pretrained = False
-        self.pid_state = [0.0, 0.0]  # integral, previous episode cost
+        self.pid_state: list[float | None] = [0.0, None]  # integral, smoothed episode cost (None before the first)
         self.action_repeat = 1
         self.total_cost = 0.0
         # Rollout state, not saved: the training envs' filter state and running episode costs
@@ -282,6 +308,8 @@ class DSSLAC(OffPolicyAlgorithm):
             raise ValueError(f"lr_decay_milestone must be a number of agent steps >= 0 or None, got {lr_decay_milestone}")
         if lr_decay_factor <= 0.0:
             raise ValueError(f"lr_decay_factor must be > 0, got {lr_decay_factor}")
+        if not 0.0 <= pid_cost_ema < 1.0:
+            raise ValueError(f"pid_cost_ema must be in [0, 1), got {pid_cost_ema}")
         if lagrange not in LAGRANGE_RULES:
             raise ValueError(f"Unknown lagrange rule {lagrange!r}; choose one of {', '.join(LAGRANGE_RULES)}")
         if self.episode_length is not None:
@@ -329,6 +357,16 @@ class DSSLAC(OffPolicyAlgorithm):
         return self.lagrange_learning_rate * self.lr_decay_multiplier
 
     @property
+    def critic_cost_budget(self) -> float:
+        """
+        The budget of the "critic" rule: ``cost_budget_per_step / (1 - cost_gamma)``, 10.0 for the thesis setting, the
+        value the critic's (infinite-horizon, time-limit-bootstrapped) estimate converges to at exactly the per-step
+        budget. Against ``discounted_cost_budget`` (9.184, discounting stopped at the episode end) the rule would hold
+        the episode cost to about 23 instead of 25.
+        """
+        return self.cost_budget_per_step / (1.0 - self.cost_gamma)
+
+    @property
     def lagrange_multiplier(self) -> float:
         """The current Lagrange multiplier (softplus of its raw parameter)."""
         return softplus(float(self.lagrange_raw.item()))
@@ -349,9 +387,6 @@ class DSSLAC(OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
-        if self.device.type == "cuda":
-            th.backends.cuda.matmul.allow_tf32 = True
-            th.backends.cudnn.allow_tf32 = True
         if self.compile_updates:
             self.policy.latent.posterior = th.compile(self.policy.latent.posterior)  # type: ignore[method-assign]
             self.policy.cost_critic.compile()
@@ -620,7 +655,7 @@ class DSSLAC(OffPolicyAlgorithm):
         self._check_finite("cost_critic_loss", cost_critic_loss)
         policy.cost_critic_optimizer.zero_grad(set_to_none=True)
         cost_critic_loss.backward()
-        th.nn.utils.clip_grad_norm_(policy.cost_critic.parameters(), self.max_grad_norm)
+        self._clip_cost_critic_gradients()
         policy.cost_critic_optimizer.step()
 
         # The actor's loss must not fill the critics' gradients
@@ -656,7 +691,7 @@ class DSSLAC(OffPolicyAlgorithm):
             raw = sgd_lagrange_step(
                 float(self.lagrange_raw.item()),
                 float(stats["cost_cvar"]),
-                self.discounted_cost_budget,
+                self.critic_cost_budget,
                 self.current_lagrange_learning_rate,
             )
             self.lagrange_raw.fill_(raw)
@@ -671,6 +706,19 @@ class DSSLAC(OffPolicyAlgorithm):
 
         self._update_targets()
         return stats
+
+    def _clip_cost_critic_gradients(self) -> None:
+        """
+        Clip the cost critic's gradient norm at ``max_grad_norm``: the IQN's cosine and quantile nets each on its own
+        (the reference trains them with two optimizers, each clipped at 40), the mean critic as a whole.
+        """
+        cost_critic = self.policy.cost_critic
+        if isinstance(cost_critic, IQNCostCritic):
+            groups = [cost_critic.cosine_net.parameters(), cost_critic.quantile_net.parameters()]
+        else:
+            groups = [cost_critic.parameters()]
+        for parameters in groups:
+            th.nn.utils.clip_grad_norm_(parameters, self.max_grad_norm)
 
     def _update_targets(self) -> None:
         """Polyak update of both target critics, ``target += tau * (source - target)``, in one fused call."""
@@ -718,14 +766,16 @@ class DSSLAC(OffPolicyAlgorithm):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfDSSLAC:
-        return super().learn(
-            total_timesteps=total_timesteps,
-            callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )
+        """SB3's ``learn``; with ``tf32`` on CUDA, float32 matrix products and convolutions use TF32 until it returns."""
+        with tf32_matmul(self.tf32 and self.device.type == "cuda"):
+            return super().learn(
+                total_timesteps=total_timesteps,
+                callback=callback,
+                log_interval=log_interval,
+                tb_log_name=tb_log_name,
+                reset_num_timesteps=reset_num_timesteps,
+                progress_bar=progress_bar,
+            )
 
     # ----------------------------------------------------------------------------------------------------------------
     # Save / load

@@ -351,3 +351,88 @@ def test_the_actor_loss_leaves_the_critics_alone(monkeypatch) -> None:
     for before, at_actor_step in zip(snapshots["critic_grads"], snapshots["grads_at_actor_step"], strict=True):
         th.testing.assert_close(before, at_actor_step, rtol=0, atol=0)
     assert any(not th.equal(a, p) for a, p in zip(actor_before, policy.actor.parameters(), strict=True))
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Smaller deviations: clipping, TF32, the critic rule's budget, the PID rule's smoothing
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def test_iqn_cosine_and_quantile_nets_are_clipped_each() -> None:
+    model = small_model(HazardPointEnv())
+    cost_critic = model.policy.cost_critic
+    for parameter in cost_critic.cosine_net.parameters():
+        parameter.grad = th.full_like(parameter, 1e-3)  # a small norm, far under 40
+    for parameter in cost_critic.quantile_net.parameters():
+        parameter.grad = th.full_like(parameter, 100.0)
+    cosine_grads = [p.grad.clone() for p in cost_critic.cosine_net.parameters()]
+    model._clip_cost_critic_gradients()
+    # One joint clip would have shrunk the cosine net's gradient with the quantile net's
+    assert all(th.equal(p.grad, g) for p, g in zip(cost_critic.cosine_net.parameters(), cosine_grads, strict=True))
+    norm = th.nn.utils.get_total_norm([p.grad for p in cost_critic.quantile_net.parameters()])
+    assert norm.item() == pytest.approx(40.0, rel=1e-4)
+
+    mean = small_model(HazardPointEnv(), cost_critic="mean")
+    for parameter in mean.policy.cost_critic.parameters():
+        parameter.grad = th.full_like(parameter, 100.0)
+    mean._clip_cost_critic_gradients()
+    norm = th.nn.utils.get_total_norm([p.grad for p in mean.policy.cost_critic.parameters()])
+    assert norm.item() == pytest.approx(40.0, rel=1e-4)
+
+
+def test_tf32_scope_restores_the_process_settings() -> None:
+    flags = th.backends.cuda.matmul, th.backends.cudnn
+    before = tuple(flag.allow_tf32 for flag in flags)
+    th.backends.cuda.matmul.allow_tf32 = False
+    try:
+        with dsslac_module.tf32_matmul(True):
+            assert th.backends.cuda.matmul.allow_tf32 and th.backends.cudnn.allow_tf32
+        assert not th.backends.cuda.matmul.allow_tf32
+        with pytest.raises(KeyError), dsslac_module.tf32_matmul(True):
+            raise KeyError
+        assert not th.backends.cuda.matmul.allow_tf32
+        with dsslac_module.tf32_matmul(False):
+            assert not th.backends.cuda.matmul.allow_tf32
+    finally:
+        th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32 = before
+
+
+def test_tf32_is_requested_only_for_learning_on_cuda(monkeypatch) -> None:
+    requested = []
+    original = dsslac_module.tf32_matmul
+    monkeypatch.setattr(dsslac_module, "tf32_matmul", lambda enabled: requested.append(enabled) or original(enabled))
+    before = th.backends.cuda.matmul.allow_tf32
+    model = small_model(HazardPointEnv(), device="cpu")
+    assert th.backends.cuda.matmul.allow_tf32 == before and requested == []  # not at construction
+    model.learn(10)
+    assert requested == [False]  # a CPU model leaves the switches alone
+    model.device = th.device("cuda")  # what the scope asks for on CUDA (nothing runs: no steps left)
+    model.learn(0, reset_num_timesteps=False)
+    model.tf32 = False
+    model.learn(0, reset_num_timesteps=False)
+    assert requested == [False, True, False]
+
+
+def test_critic_rule_budget_is_the_infinite_horizon_value(monkeypatch) -> None:
+    model = small_model(HazardPointEnv(max_episode_steps=500), lagrange="critic")
+    assert model.critic_cost_budget == pytest.approx(10.0)
+    assert model.discounted_cost_budget == pytest.approx(9.184, abs=1e-3)  # still the mean critic's initial bias
+    budgets = []
+    original = dsslac_module.sgd_lagrange_step
+    monkeypatch.setattr(dsslac_module, "sgd_lagrange_step", lambda r, c, b, lr: budgets.append(b) or original(r, c, b, lr))
+    model.learn(50)
+    assert budgets and budgets == pytest.approx([10.0] * len(budgets))
+
+
+def test_pid_rule_uses_the_smoothing_and_saves_its_state(tmp_path, monkeypatch) -> None:
+    seen = []
+    original = lagrange.pid_lagrange_step
+    monkeypatch.setattr(lagrange, "pid_lagrange_step", lambda *args: seen.append(args[-1]) or original(*args))
+    model = small_model(HazardPointEnv(), lagrange="pid", pid_cost_ema=0.7, learning_starts=20)
+    model.learn(60)
+    assert seen == [0.7, 0.7] and model.pid_state[1] is not None  # episodes end at steps 30 and 60
+    model.save(tmp_path / "model.zip")
+    loaded = DSSLAC.load(tmp_path / "model.zip")
+    assert loaded.pid_state == model.pid_state and loaded.pid_cost_ema == 0.7
+    with pytest.raises(ValueError, match="pid_cost_ema"):
+        small_model(HazardPointEnv(), pid_cost_ema=1.0)
