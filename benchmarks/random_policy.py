@@ -1,7 +1,8 @@
 """Random-policy sanity numbers (SAFETY_GYM_SPEC.md section 7.5): episode return, cost and goals per episode.
 
-Usage: ``python benchmarks/random_policy.py [--episodes 100] [--ids SafetyGym/PointGoal1-v0 ...]``. Uniform random
-actions, ``obs_type="state"`` (same dynamics as pixels, no rendering), episode ``i`` reset with seed ``i``.
+Usage: ``python benchmarks/random_policy.py [--episodes 100] [--ids SafetyGym/PointGoal1-v0 ...]``. A fresh uniform random
+action every simulator step (``action_repeat=1``, as the Safety-Gym and Safety-Gymnasium random-policy numbers were
+taken), ``obs_type="state"`` (same dynamics as pixels, no rendering), episode ``i`` reset with seed ``i``.
 """
 
 import argparse
@@ -18,8 +19,8 @@ import safety_envs  # noqa: F401  (registers the ids)
 
 
 def evaluate(env_id: str, episodes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-episode (returns, costs, goals met) of a uniform random policy."""
-    env = gym.make(env_id, obs_type="state")
+    """Per-episode (returns, costs, goals met) of a uniform random policy, one action per simulator step."""
+    env = gym.make(env_id, obs_type="state", action_repeat=1)
     env.action_space.seed(0)
     stats = np.zeros((episodes, 3))
     for episode in range(episodes):

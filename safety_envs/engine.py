@@ -3,6 +3,7 @@
 The rules follow SAFETY_GYM_SPEC.md sections 1-4 and 6; ``docs/safety_envs.md`` maps each rule to the spec.
 """
 
+import warnings
 from typing import Any
 
 import gymnasium as gym
@@ -21,6 +22,8 @@ SENSOR_KEYS = ("accelerometer", "velocimeter", "gyro", "magnetometer")
 REWARD_EXCEPTION = -10.0
 # Resting free bodies (vases) sleep below this velocity, far under the 1e-4 m/s vase-velocity cost threshold.
 SLEEP_TOLERANCE = 1e-6
+# MuJoCo's sleeping islands arrived in MuJoCo 3.4.0; without them every body is simulated at every substep.
+SLEEP_FLAG = getattr(mujoco.mjtEnableBit, "mjENBL_SLEEP", None)
 # Vision tessellation: 16 slices and 8 stacks instead of MuJoCo's 28 and 16 halve the CPU render time.
 RENDER_NUM_SLICES = 16
 RENDER_NUM_STACKS = 8
@@ -80,7 +83,7 @@ class SafetyGymEnv(gym.Env):
     :param render_height: height of the ``render()`` image in pixels
     :param physics_sleep: let MuJoCo put resting vases to sleep (velocity tolerance 1e-6, below the 1e-4 m/s
         cost threshold) until something touches them: 3-4x faster physics in Goal2, same costs; the robot never
-        sleeps. ``False`` simulates every body at every substep.
+        sleeps. ``False`` simulates every body at every substep, as does a MuJoCo older than 3.4 (with a warning).
     :param color_goal_button: in Button tasks, colour the goal button green (the others stay orange), as the
         LAMBDA and Safe SLAC pixel pipelines did; ``False`` keeps Safety-Gym's all-orange buttons
     """
@@ -122,8 +125,14 @@ class SafetyGymEnv(gym.Env):
         self.model.vis.quality.offsamples = 0
         self.model.vis.quality.numslices = RENDER_NUM_SLICES
         self.model.vis.quality.numstacks = RENDER_NUM_STACKS
-        if physics_sleep:
-            self.model.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_SLEEP
+        if physics_sleep and SLEEP_FLAG is None:
+            warnings.warn(
+                f"MuJoCo {mujoco.__version__} cannot put bodies to sleep (MuJoCo 3.4 added it): physics_sleep is off, "
+                "the same dynamics and costs, slower in Goal2 tasks. pip install 'mujoco>=3.4' to have it",
+                stacklevel=2,
+            )
+        elif physics_sleep:
+            self.model.opt.enableflags |= SLEEP_FLAG
             self.model.opt.sleep_tolerance = SLEEP_TOLERANCE
         self.data = mujoco.MjData(self.model)
         self.sim_dt = self.model.opt.timestep * self.task_spec.frameskip  # s per simulator step

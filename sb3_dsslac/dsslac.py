@@ -4,6 +4,7 @@ import contextlib
 import math
 import warnings
 from collections import defaultdict, deque
+from collections.abc import Iterator
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -14,12 +15,12 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TrainFreq, TrainFrequencyUnit
-from stable_baselines3.common.utils import safe_mean
+from stable_baselines3.common.utils import safe_mean, update_learning_rate
 from torch.nn import functional as F
 from tqdm.auto import tqdm
 
 from sb3_dsslac.buffers import SequenceBatch, SequenceReplayBuffer
-from sb3_dsslac.critics import quantile_huber_loss, sample_taus
+from sb3_dsslac.critics import IQNCostCritic, quantile_huber_loss, sample_taus
 from sb3_dsslac.env_info import action_repeat_of, cost_from_info, episode_length_of
 from sb3_dsslac.lagrange import (
     LAGRANGE_RULES,
@@ -33,6 +34,23 @@ from sb3_dsslac.policies import LatentPolicy
 SelfDSSLAC = TypeVar("SelfDSSLAC", bound="DSSLAC")
 
 
+@contextlib.contextmanager
+def tf32_matmul(enabled: bool) -> Iterator[None]:
+    """
+    TF32 for CUDA float32 matrix products and cuDNN convolutions inside the block when ``enabled`` (PyTorch's switches
+    are process-wide, so the previous values come back when the block ends, also on an error); nothing otherwise.
+    """
+    if not enabled:
+        yield
+        return
+    previous = th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32
+    th.backends.cuda.matmul.allow_tf32 = th.backends.cudnn.allow_tf32 = True
+    try:
+        yield
+    finally:
+        th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32 = previous
+
+
 def _has_lagrange_callback(callback: MaybeCallback) -> bool:
     if isinstance(callback, LagrangeCallback):
         return True
@@ -41,6 +59,34 @@ def _has_lagrange_callback(callback: MaybeCallback) -> bool:
     if isinstance(callback, list):
         return any(_has_lagrange_callback(child) for child in callback)
     return False
+
+
+# Keywords of both DSSLAC and LatentPolicy, with their defaults (the code behind the thesis numbers)
+SHARED_POLICY_KEYWORDS: dict[str, Any] = {
+    "image_noise": 0.4,
+    "cost_loss_weight": 30.0,
+    "cost_positive_weight": 100.0,
+    "latent_learning_rate": 1e-4,
+    "cost_critic": "iqn",
+}
+
+
+def _merge_shared_keywords(policy_kwargs: dict[str, Any], **given: Any) -> dict[str, Any]:
+    """
+    ``policy_kwargs`` with each of ``SHARED_POLICY_KEYWORDS`` set once: the value given to DSSLAC (None: not given),
+    else the one in ``policy_kwargs``, else the default. A ValueError names both when they are given and differ.
+    """
+    for name, default in SHARED_POLICY_KEYWORDS.items():
+        value = given[name]
+        if value is None:
+            policy_kwargs.setdefault(name, default)
+        elif name in policy_kwargs and policy_kwargs[name] != value:
+            raise ValueError(
+                f"{name}={value!r} and policy_kwargs={{{name!r}: {policy_kwargs[name]!r}}} disagree: give {name} once"
+            )
+        else:
+            policy_kwargs[name] = value
+    return policy_kwargs
 
 
 class DSSLAC(OffPolicyAlgorithm):
@@ -69,7 +115,7 @@ class DSSLAC(OffPolicyAlgorithm):
     :param train_freq: agent steps between training bursts; with ``n_envs`` envs it counts agent steps over all envs
         (it becomes ``train_freq / n_envs`` calls of ``env.step``), so the updates per agent step stay the same
     :param gradient_steps: updates per burst (each is one latent and one actor-critic update)
-    :param latent_learning_rate: Adam step size of the latent model
+    :param latent_learning_rate: Adam step size of the latent model (None: ``policy_kwargs``' value, else 1e-4)
     :param ent_coef: entropy coefficient, "auto" (learned from 1.0) or "auto_<init>" (learned from init), or a float
     :param target_entropy: target entropy of the learned coefficient; "auto" is ``-action_dim``
     :param cost_limit: cost budget per episode (Safety-Gym: 25 per 1000 simulator steps)
@@ -80,17 +126,28 @@ class DSSLAC(OffPolicyAlgorithm):
         critic's estimate against the discounted per-step budget, every actor-critic update; for study)
     :param lagrange_init: initial Lagrange multiplier
     :param lagrange_learning_rate: SGD step size of the multiplier's raw (pre-softplus) parameter
+    :param lr_decay_milestone: agent steps (counted from the start of training, warm-up included) from which every step
+        size (actor, both critics, entropy coefficient, latent model and multiplier) is multiplied by
+        ``lr_decay_factor``; None: no decay. The code behind the thesis numbers halves them all once at 230_000 (its
+        ``MultiStepLR`` milestone 400, stepped every 1000 simulator steps after the 60k-step warm-up: 460k simulator
+        steps), which the ``thesis`` presets set
+    :param lr_decay_factor: the factor applied from ``lr_decay_milestone`` on (0.5 in the reference code)
     :param pid_kp: proportional gain of the "pid" rule (multiplier per unit of episode cost over the budget)
     :param pid_ki: integral gain of the "pid" rule
     :param pid_kd: derivative gain of the "pid" rule
-    :param cost_critic: "iqn" (DS-SLAC's distributional critic) or "mean" (Safe SLAC's expectation critic)
+    :param pid_cost_ema: smoothing of the episode costs that the "pid" rule's proportional and derivative terms act on
+        (an exponential moving average with this weight on the past; 0: each episode's own cost)
+    :param cost_critic: "iqn" (DS-SLAC's distributional critic) or "mean" (Safe SLAC's expectation critic); None:
+        ``policy_kwargs``' value, else "iqn"
     :param n_quantiles: N = N' = K, the quantile fractions sampled per update by the IQN critic and the actor
     :param cvar_risk_level: beta in (0, 1]: the actor's K fractions are drawn from U(1 - beta, 1); 1.0 is the mean
     :param max_grad_norm: gradient-norm clip of the latent model and the critics
     :param actor_max_grad_norm: gradient-norm clip of the actor (80 in the reference code)
-    :param image_noise: variance of the Gaussian observation likelihood
-    :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss
-    :param cost_positive_weight: extra weight of unsafe steps in the cost likelihood
+    :param image_noise: variance of the Gaussian observation likelihood (None: ``policy_kwargs``' value, else 0.4)
+    :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss (None: ``policy_kwargs``' value,
+        else 30)
+    :param cost_positive_weight: extra weight of unsafe steps in the cost likelihood (None: ``policy_kwargs``' value,
+        else 100)
     :param share_latent_batch: one sampled batch and one encoder pass per update: the latent model trains on the first
         ``latent_batch_size`` sequences, and the actor-critic update uses the posterior of the first ``batch_size``
         from the same features (before the latent step). False keeps the thesis's two independent batches
@@ -99,13 +156,17 @@ class DSSLAC(OffPolicyAlgorithm):
     :param compile_updates: ``torch.compile`` the latent model's posterior rollout (a loop of small MLPs, the
         launch-bound part of the update) and the cost critic; the convolutions stay eager. Costs a one-off
         compilation (about a minute) at the first update
+    :param tf32: on CUDA, float32 matrix products and convolutions use TF32 while ``learn`` runs (the process-wide
+        settings come back when it returns); the reference code ran in full float32
     :param replay_buffer_kwargs: extra keywords of the ``SequenceReplayBuffer``
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder
-    :param policy_kwargs: keywords of the policy (``z1_dim``, ``z2_dim``, ``feature_dim``, ``hidden_units``, ``n_cosines``)
+    :param policy_kwargs: keywords of the policy (``z1_dim``, ``z2_dim``, ``feature_dim``, ``hidden_units``, ``n_cosines``);
+        a keyword given both here and to DSSLAC (``image_noise``, ``cost_loss_weight``, ``cost_positive_weight``,
+        ``latent_learning_rate``, ``cost_critic``) must have the same value in both, else a ValueError
     :param verbose: 0 silent, 1 info (with a progress bar for the latent pre-training), 2 debug
     :param seed: random seed
-    :param device: "cpu", "cuda" or "auto"; on CUDA float32 matrix products use TF32
+    :param device: "cpu", "cuda" or "auto"
     :param _init_setup_model: build the networks at construction
     """
 
@@ -130,7 +191,7 @@ class DSSLAC(OffPolicyAlgorithm):
         cost_gamma: float = 0.995,
         train_freq: int | tuple[int, str] = 100,
         gradient_steps: int = 100,
-        latent_learning_rate: float = 1e-4,
+        latent_learning_rate: float | None = None,
         ent_coef: str | float = "auto_4e-3",
         target_entropy: str | float = "auto",
         cost_limit: float = 25.0,
@@ -138,20 +199,24 @@ class DSSLAC(OffPolicyAlgorithm):
         lagrange: str = "sgd",
         lagrange_init: float = 0.02,
         lagrange_learning_rate: float = 2e-4,
+        lr_decay_milestone: int | None = None,
+        lr_decay_factor: float = 0.5,
         pid_kp: float = 0.05,
         pid_ki: float = 0.005,
         pid_kd: float = 0.02,
-        cost_critic: str = "iqn",
+        pid_cost_ema: float = 0.9,
+        cost_critic: str | None = None,
         n_quantiles: int = 64,
         cvar_risk_level: float = 1.0,
         max_grad_norm: float = 40.0,
         actor_max_grad_norm: float = 80.0,
-        image_noise: float = 0.4,
-        cost_loss_weight: float = 30.0,
-        cost_positive_weight: float = 100.0,
+        image_noise: float | None = None,
+        cost_loss_weight: float | None = None,
+        cost_positive_weight: float | None = None,
         share_latent_batch: bool = False,
         bf16: bool = False,
         compile_updates: bool = False,
+        tf32: bool = True,
         replay_buffer_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -187,7 +252,16 @@ class DSSLAC(OffPolicyAlgorithm):
         self.latent_batch_size = latent_batch_size
         self.sequence_length = sequence_length
         self.cost_gamma = cost_gamma
-        self.latent_learning_rate = latent_learning_rate
+        # A copy: the caller's dict is not ours to fill, and may be shared by several models
+        self.policy_kwargs = _merge_shared_keywords(
+            dict(self.policy_kwargs),
+            image_noise=image_noise,
+            cost_loss_weight=cost_loss_weight,
+            cost_positive_weight=cost_positive_weight,
+            latent_learning_rate=latent_learning_rate,
+            cost_critic=cost_critic,
+        )
+        self.latent_learning_rate = float(self.policy_kwargs["latent_learning_rate"])
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
         self.cost_limit = cost_limit
@@ -195,8 +269,11 @@ class DSSLAC(OffPolicyAlgorithm):
         self.lagrange = lagrange
         self.lagrange_init = lagrange_init
         self.lagrange_learning_rate = lagrange_learning_rate
+        self.lr_decay_milestone = lr_decay_milestone
+        self.lr_decay_factor = lr_decay_factor
         self.pid_gains = (pid_kp, pid_ki, pid_kd)
-        self.cost_critic = cost_critic
+        self.pid_cost_ema = pid_cost_ema
+        self.cost_critic = str(self.policy_kwargs["cost_critic"])
         self.n_quantiles = n_quantiles
         self.cvar_risk_level = cvar_risk_level
         self.max_grad_norm = max_grad_norm
@@ -204,15 +281,10 @@ class DSSLAC(OffPolicyAlgorithm):
         self.share_latent_batch = share_latent_batch
         self.bf16 = bf16
         self.compile_updates = compile_updates
-        self.policy_kwargs.update(
-            image_noise=image_noise,
-            cost_loss_weight=cost_loss_weight,
-            cost_positive_weight=cost_positive_weight,
-            latent_learning_rate=latent_learning_rate,
-        )
+        self.tf32 = tf32
         # Run state that is saved with the model (so that resuming never repeats the pre-training)
         self.latent_pretrained = False
-        self.pid_state = [0.0, 0.0]  # integral, previous episode cost
+        self.pid_state: list[float | None] = [0.0, None]  # integral, smoothed episode cost (None before the first)
         self.action_repeat = 1
         self.total_cost = 0.0
         # Rollout state, not saved: the training envs' filter state and running episode costs
@@ -232,10 +304,16 @@ class DSSLAC(OffPolicyAlgorithm):
                 )
         if not 0.0 < cvar_risk_level <= 1.0:
             raise ValueError(f"cvar_risk_level must be in (0, 1], got {cvar_risk_level}")
+        if lr_decay_milestone is not None and lr_decay_milestone < 0:
+            raise ValueError(f"lr_decay_milestone must be a number of agent steps >= 0 or None, got {lr_decay_milestone}")
+        if lr_decay_factor <= 0.0:
+            raise ValueError(f"lr_decay_factor must be > 0, got {lr_decay_factor}")
+        if not 0.0 <= pid_cost_ema < 1.0:
+            raise ValueError(f"pid_cost_ema must be in [0, 1), got {pid_cost_ema}")
         if lagrange not in LAGRANGE_RULES:
             raise ValueError(f"Unknown lagrange rule {lagrange!r}; choose one of {', '.join(LAGRANGE_RULES)}")
         if self.episode_length is not None:
-            self.policy_kwargs.update(cost_critic=cost_critic, cost_critic_initial_value=self.discounted_cost_budget)
+            self.policy_kwargs.setdefault("cost_critic_initial_value", self.discounted_cost_budget)
         if _init_setup_model:
             self._setup_model()
 
@@ -267,6 +345,28 @@ class DSSLAC(OffPolicyAlgorithm):
         return self.cost_budget_per_step * (1.0 - self.cost_gamma**self.episode_length) / (1.0 - self.cost_gamma)
 
     @property
+    def lr_decay_multiplier(self) -> float:
+        """The factor on every step size now: ``lr_decay_factor`` from agent step ``lr_decay_milestone`` on, else 1."""
+        if self.lr_decay_milestone is not None and self.num_timesteps >= self.lr_decay_milestone:
+            return self.lr_decay_factor
+        return 1.0
+
+    @property
+    def current_lagrange_learning_rate(self) -> float:
+        """The multiplier's SGD step size now: ``lagrange_learning_rate`` times ``lr_decay_multiplier``."""
+        return self.lagrange_learning_rate * self.lr_decay_multiplier
+
+    @property
+    def critic_cost_budget(self) -> float:
+        """
+        The budget of the "critic" rule: ``cost_budget_per_step / (1 - cost_gamma)``, 10.0 for the thesis setting, the
+        value the critic's (infinite-horizon, time-limit-bootstrapped) estimate converges to at exactly the per-step
+        budget. Against ``discounted_cost_budget`` (9.184, discounting stopped at the episode end) the rule would hold
+        the episode cost to about 23 instead of 25.
+        """
+        return self.cost_budget_per_step / (1.0 - self.cost_gamma)
+
+    @property
     def lagrange_multiplier(self) -> float:
         """The current Lagrange multiplier (softplus of its raw parameter)."""
         return softplus(float(self.lagrange_raw.item()))
@@ -287,9 +387,6 @@ class DSSLAC(OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
-        if self.device.type == "cuda":
-            th.backends.cuda.matmul.allow_tf32 = True
-            th.backends.cudnn.allow_tf32 = True
         if self.compile_updates:
             self.policy.latent.posterior = th.compile(self.policy.latent.posterior)  # type: ignore[method-assign]
             self.policy.cost_critic.compile()
@@ -408,6 +505,23 @@ class DSSLAC(OffPolicyAlgorithm):
                 "for NaN/inf, or lower the learning rates."
             )
 
+    def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
+        """
+        Set the step sizes for the current timestep: ``optimizers`` (actor, critics, entropy coefficient) follow
+        ``lr_schedule`` and the latent model ``latent_learning_rate``, each times ``lr_decay_multiplier``. A pure
+        function of ``num_timesteps`` and the progress, so a resumed run continues with the right step sizes.
+        """
+        if not isinstance(optimizers, list):
+            optimizers = [optimizers]
+        factor = self.lr_decay_multiplier
+        learning_rate = self.lr_schedule(self._current_progress_remaining) * factor
+        latent_learning_rate = self.latent_learning_rate * factor
+        self.logger.record("train/learning_rate", learning_rate)
+        self.logger.record("train/latent_learning_rate", latent_learning_rate)
+        for optimizer in optimizers:
+            update_learning_rate(optimizer, learning_rate)
+        update_learning_rate(self.policy.latent_optimizer, latent_learning_rate)
+
     def _latent_autocast(self) -> contextlib.AbstractContextManager:
         """bfloat16 autocast for the latent model's passes when ``bf16`` is set, else nothing."""
         if self.bf16:
@@ -480,6 +594,32 @@ class DSSLAC(OffPolicyAlgorithm):
         ac_batch = SequenceBatch(*(field[:batch_size] for field in batch))
         return {**stats, **self._actor_critic_update(ac_batch, latents.float())}
 
+    @th.no_grad()
+    def _td_targets(
+        self, batch: SequenceBatch, latents: th.Tensor, ent_coef: th.Tensor, target_taus: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """
+        TD targets of both critics for the last transition of each sequence, ``z = latents[:, -2]`` to
+        ``z' = latents[:, -1]``, with ``a' ~ pi(z')`` from the current actor; terminations stop the bootstrap, time
+        limits (truncations) do not.
+
+        :param batch: the sequences (B, L+1 frames)
+        :param latents: their posterior samples (B, L+1, z_dim)
+        :param ent_coef: the entropy coefficient (scalar or (1,))
+        :param target_taus: the target quantile fractions (B, N')
+        :return: ``r + gamma * (1 - terminated) * (min(Q1', Q2')(z', a') - alpha * log pi(a' | z'))`` (B, 1) and
+            ``c + gamma_c * (1 - terminated) * Z'_tau'(z', a')`` (B, N')
+        """
+        policy = self.policy
+        next_z = latents[:, -1]
+        not_terminated = 1.0 - batch.terminated[:, -1:]
+        next_actions, next_log_prob = policy.actor.action_log_prob(next_z)
+        next_q = th.min(*policy.critic_target(next_z, next_actions)) - ent_coef * next_log_prob.unsqueeze(-1)
+        target_q = batch.rewards[:, -1:] + not_terminated * self.gamma * next_q
+        next_quantiles = policy.cost_critic_target(next_z, next_actions, target_taus)
+        target_quantiles = batch.costs[:, -1:] + not_terminated * self.cost_gamma * next_quantiles
+        return target_q, target_quantiles
+
     def _actor_critic_update(self, batch: SequenceBatch, latents: th.Tensor) -> dict[str, th.Tensor]:
         """
         One update of the reward critic, the cost critic, the actor and the entropy coefficient on the last transition
@@ -490,20 +630,13 @@ class DSSLAC(OffPolicyAlgorithm):
         """
         policy = self.policy
         n = batch.actions.shape[0]
-        z, next_z = latents[:, -2], latents[:, -1]
+        z = latents[:, -2]
         actions = batch.actions[:, -1]
-        rewards, costs = batch.rewards[:, -1:], batch.costs[:, -1:]
-        not_terminated = 1.0 - batch.terminated[:, -1:]
         ent_coef = th.exp(self.log_ent_coef.detach()) if self.ent_coef_optimizer is not None else self.ent_coef_tensor
         multiplier = self.lagrange_multiplier
 
-        with th.no_grad():
-            next_actions, next_log_prob = policy.actor.action_log_prob(next_z)
-            next_q = th.min(*policy.critic_target(next_z, next_actions)) - ent_coef * next_log_prob.unsqueeze(-1)
-            target_q = rewards + not_terminated * self.gamma * next_q
-            target_taus = sample_taus(n, self.n_quantiles, self.device)
-            next_quantiles = policy.cost_critic_target(next_z, next_actions, target_taus)
-            target_quantiles = costs + not_terminated * self.cost_gamma * next_quantiles
+        target_taus = sample_taus(n, self.n_quantiles, self.device)
+        target_q, target_quantiles = self._td_targets(batch, latents, ent_coef, target_taus)
 
         q1, q2 = policy.critic(z, actions)
         critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
@@ -522,7 +655,7 @@ class DSSLAC(OffPolicyAlgorithm):
         self._check_finite("cost_critic_loss", cost_critic_loss)
         policy.cost_critic_optimizer.zero_grad(set_to_none=True)
         cost_critic_loss.backward()
-        th.nn.utils.clip_grad_norm_(policy.cost_critic.parameters(), self.max_grad_norm)
+        self._clip_cost_critic_gradients()
         policy.cost_critic_optimizer.step()
 
         # The actor's loss must not fill the critics' gradients
@@ -558,8 +691,8 @@ class DSSLAC(OffPolicyAlgorithm):
             raw = sgd_lagrange_step(
                 float(self.lagrange_raw.item()),
                 float(stats["cost_cvar"]),
-                self.discounted_cost_budget,
-                self.lagrange_learning_rate,
+                self.critic_cost_budget,
+                self.current_lagrange_learning_rate,
             )
             self.lagrange_raw.fill_(raw)
         if self.ent_coef_optimizer is not None:
@@ -573,6 +706,19 @@ class DSSLAC(OffPolicyAlgorithm):
 
         self._update_targets()
         return stats
+
+    def _clip_cost_critic_gradients(self) -> None:
+        """
+        Clip the cost critic's gradient norm at ``max_grad_norm``: the IQN's cosine and quantile nets each on its own
+        (the reference trains them with two optimizers, each clipped at 40), the mean critic as a whole.
+        """
+        cost_critic = self.policy.cost_critic
+        if isinstance(cost_critic, IQNCostCritic):
+            groups = [cost_critic.cosine_net.parameters(), cost_critic.quantile_net.parameters()]
+        else:
+            groups = [cost_critic.parameters()]
+        for parameters in groups:
+            th.nn.utils.clip_grad_norm_(parameters, self.max_grad_norm)
 
     def _update_targets(self) -> None:
         """Polyak update of both target critics, ``target += tau * (source - target)``, in one fused call."""
@@ -620,14 +766,16 @@ class DSSLAC(OffPolicyAlgorithm):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfDSSLAC:
-        return super().learn(
-            total_timesteps=total_timesteps,
-            callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )
+        """SB3's ``learn``; with ``tf32`` on CUDA, float32 matrix products and convolutions use TF32 until it returns."""
+        with tf32_matmul(self.tf32 and self.device.type == "cuda"):
+            return super().learn(
+                total_timesteps=total_timesteps,
+                callback=callback,
+                log_interval=log_interval,
+                tb_log_name=tb_log_name,
+                reset_num_timesteps=reset_num_timesteps,
+                progress_bar=progress_bar,
+            )
 
     # ----------------------------------------------------------------------------------------------------------------
     # Save / load

@@ -42,24 +42,34 @@ def sgd_lagrange_step(raw: float, cost: float, budget_per_step: float, learning_
 
 
 def pid_lagrange_step(
-    state: list[float], episode_cost: float, cost_limit: float, kp: float, ki: float, kd: float
-) -> tuple[float, list[float]]:
+    state: list[float | None], episode_cost: float, cost_limit: float, kp: float, ki: float, kd: float, cost_ema: float = 0.0
+) -> tuple[float, list[float | None]]:
     """
     One update of the PID Lagrangian (Stooke, Achiam and Abbeel, 2020) from a finished episode's cost.
 
-    :param state: ``[integral, previous episode cost]``
+    The proportional and derivative terms act on a moving average of the episode costs,
+    ``smoothed = cost_ema * smoothed + (1 - cost_ema) * episode_cost``, as PID Lagrangian implementations smooth them
+    (Stooke et al.'s and OmniSafe's ``pid_delta_p_ema_alpha`` and ``pid_delta_d_ema_alpha``): the derivative of single
+    noisy episode costs, clipped at 0, is positive on average even at a steady cost, and pushes the multiplier up. The
+    integral sums the raw errors.
+
+    :param state: ``[integral, smoothed episode cost]``, the latter None before the first episode (which starts it)
     :param episode_cost: total cost of the finished episode
     :param cost_limit: the episode budget
     :param kp: proportional gain (per unit of episode cost over the budget)
     :param ki: integral gain
     :param kd: derivative gain (only rising costs push the multiplier up)
+    :param cost_ema: weight of the past in the moving average, in [0, 1); 0 uses each episode's own cost
     :return: the multiplier (>= 0) and the new state
     """
-    integral, previous_cost = state
-    error = episode_cost - cost_limit
-    integral = max(0.0, integral + ki * error)
-    derivative = max(0.0, episode_cost - previous_cost)
-    return max(0.0, kp * error + integral + kd * derivative), [integral, episode_cost]
+    integral, previous = state
+    assert integral is not None
+    if previous is None:
+        previous = episode_cost
+    integral = max(0.0, integral + ki * (episode_cost - cost_limit))
+    smoothed = cost_ema * previous + (1.0 - cost_ema) * episode_cost
+    derivative = max(0.0, smoothed - previous)
+    return max(0.0, kp * (smoothed - cost_limit) + integral + kd * derivative), [integral, smoothed]
 
 
 # Multipliers below this are stored as this (softplus never reaches 0)
@@ -77,9 +87,12 @@ class LagrangeCallback(BaseCallback):
     - ``"sgd"`` (default, the thesis rule): after every agent step, each env's ``info["cost"]`` moves the multiplier
       up when it exceeds the per-step budget (``cost_limit / episode_length``) and down otherwise;
     - ``"episode"``: the same SGD rule once per finished episode, from its total cost against ``cost_limit``;
-    - ``"pid"``: a PID Lagrangian on each finished episode's cost against ``cost_limit``;
-    - ``"critic"``: nothing here; ``DSSLAC.train`` drives the multiplier from the cost critic.
+    - ``"pid"``: a PID Lagrangian on each finished episode's cost against ``cost_limit`` (smoothed by
+      ``model.pid_cost_ema``);
+    - ``"critic"``: nothing here; ``DSSLAC.train`` drives the multiplier from the cost critic against
+      ``model.critic_cost_budget``.
 
+    The SGD rules step with ``model.current_lagrange_learning_rate`` (the step size after any ``lr_decay_milestone``).
     ``DSSLAC.learn`` attaches this callback itself.
     """
 
@@ -94,13 +107,15 @@ class LagrangeCallback(BaseCallback):
         raw = float(model.lagrange_raw.item())
         if model.lagrange == "sgd":
             for cost in costs:
-                raw = sgd_lagrange_step(raw, float(cost), model.cost_budget_per_step, model.lagrange_learning_rate)
+                raw = sgd_lagrange_step(raw, float(cost), model.cost_budget_per_step, model.current_lagrange_learning_rate)
         elif model.lagrange == "episode":
             for cost in finished:
-                raw = sgd_lagrange_step(raw, cost, model.cost_limit, model.lagrange_learning_rate)
+                raw = sgd_lagrange_step(raw, cost, model.cost_limit, model.current_lagrange_learning_rate)
         else:
             for cost in finished:
-                multiplier, model.pid_state = pid_lagrange_step(model.pid_state, cost, model.cost_limit, *model.pid_gains)
+                multiplier, model.pid_state = pid_lagrange_step(
+                    model.pid_state, cost, model.cost_limit, *model.pid_gains, model.pid_cost_ema
+                )
                 raw = inverse_softplus(max(multiplier, MIN_MULTIPLIER))
         if not np.isfinite(raw):
             raise RuntimeError(f"The Lagrange multiplier's {model.lagrange!r} update produced a non-finite value")

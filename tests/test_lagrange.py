@@ -5,7 +5,7 @@ import math
 import pytest
 
 from sb3_dsslac.env_info import cost_from_info
-from sb3_dsslac.lagrange import inverse_softplus, sgd_lagrange_step, softplus
+from sb3_dsslac.lagrange import inverse_softplus, pid_lagrange_step, sgd_lagrange_step, softplus
 
 
 @pytest.mark.parametrize("value", [1e-3, 0.02, 1.0, 30.0])
@@ -45,3 +45,27 @@ def test_cost_from_info_names_the_fix() -> None:
     assert cost_from_info({"cost": 2}) == 2.0
     with pytest.raises(ValueError, match=r"info\['cost'\]"):
         cost_from_info({})
+
+
+def test_pid_step_by_hand() -> None:
+    # Smoothed 0.5 * 40 + 0.5 * 20 = 30: P 0.1 * (30 - 25), I 0.01 * (20 - 25) floored at 0 from 1.0, D 0.2 * (30 - 40)^+
+    multiplier, state = pid_lagrange_step([1.0, 40.0], 20.0, 25.0, kp=0.1, ki=0.01, kd=0.2, cost_ema=0.5)
+    assert state == [pytest.approx(0.95), pytest.approx(30.0)]
+    assert multiplier == pytest.approx(0.1 * 5 + 0.95)
+    # The first episode starts the average: no derivative kick from a made-up previous cost of 0
+    multiplier, state = pid_lagrange_step([0.0, None], 60.0, 25.0, kp=0.0, ki=0.0, kd=1.0, cost_ema=0.9)
+    assert multiplier == 0.0 and state == [0.0, 60.0]
+
+
+def test_pid_smoothing_removes_the_upward_bias_of_noisy_costs() -> None:
+    # A steady mean cost at the budget, alternating 0 and 50: only the derivative term acts
+    def mean_multiplier(cost_ema: float) -> float:
+        state: list[float | None] = [0.0, None]
+        multipliers = []
+        for cost in [0.0, 50.0] * 100:
+            multiplier, state = pid_lagrange_step(state, cost, 25.0, kp=0.0, ki=0.0, kd=1.0, cost_ema=cost_ema)
+            multipliers.append(multiplier)
+        return sum(multipliers[20:]) / len(multipliers[20:])
+
+    assert mean_multiplier(0.0) == pytest.approx(25.0)
+    assert mean_multiplier(0.9) < 0.15 * mean_multiplier(0.0)

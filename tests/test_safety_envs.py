@@ -359,6 +359,17 @@ def test_physics_sleep_keeps_robot_dynamics_and_vase_costs():
     assert runs[0] == runs[1]
 
 
+def test_physics_sleep_is_off_with_a_warning_on_a_mujoco_without_it(monkeypatch):
+    assert safety_envs.engine.SLEEP_FLAG is not None  # setup.cfg asks for MuJoCo >= 3.4, which has sleeping
+    monkeypatch.setattr(safety_envs.engine, "SLEEP_FLAG", None)
+    with pytest.warns(UserWarning, match="MuJoCo 3.4"):
+        env = make_env("Point", "Goal", 2, obs_type="state")
+    assert not env.model.opt.enableflags & mujoco.mjtEnableBit.mjENBL_SLEEP
+    env.reset(seed=0)
+    env.step(np.zeros(2))
+    assert env.data.ntree_awake == env.model.ntree
+
+
 def test_physics_exception_ends_episode():
     env = make_env("Point", "Goal", 1, obs_type="state")
     env.reset(seed=0)

@@ -1,0 +1,438 @@
+"""Pins of the behaviour behind the thesis numbers: defaults, step-size milestone, TD targets, losses and isolation."""
+
+import inspect
+
+import pytest
+import torch as th
+from torch import nn
+from torch.distributions import Normal, kl_divergence
+
+import sb3_dsslac.dsslac as dsslac_module
+from sb3_dsslac import DSSLAC, LatentPolicy, lagrange
+from sb3_dsslac.buffers import SequenceBatch
+from sb3_dsslac.latent import LatentModel, LatentRollout
+from sb3_dsslac.presets import PRESETS, THESIS_LR_DECAY_MILESTONE
+from tests.synthetic_envs import HazardPointEnv
+from tests.test_dsslac import SMALL, small_model
+
+OPTIMIZERS = ("latent_optimizer", "actor_optimizer", "critic_optimizer", "cost_critic_optimizer")
+
+
+def step_sizes(model: DSSLAC) -> dict[str, float]:
+    """Every optimizer's step size and the multiplier's."""
+    sizes = {name: getattr(model.policy, name).param_groups[0]["lr"] for name in OPTIMIZERS}
+    assert model.ent_coef_optimizer is not None
+    sizes["ent_coef_optimizer"] = model.ent_coef_optimizer.param_groups[0]["lr"]
+    sizes["lagrange"] = model.current_lagrange_learning_rate
+    return sizes
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Step-size milestone
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def test_thesis_milestone_is_the_reference_codes() -> None:
+    # MultiStepLR(milestones=[400]) stepped every 1000 simulator steps after the 60k-simulator-step warm-up
+    assert THESIS_LR_DECAY_MILESTONE * 2 == 60_000 + 400 * 1000
+    for name in ("thesis", "thesis_fast"):
+        assert PRESETS[name]["lr_decay_milestone"] == 230_000
+    assert "lr_decay_milestone" not in PRESETS["cpu"]
+
+
+def test_milestone_halves_every_step_size_once() -> None:
+    model = small_model(HazardPointEnv(), lr_decay_milestone=100, learning_rate=3e-4, latent_learning_rate=2e-4)
+    model.learn(45)
+    model.num_timesteps = 99
+    model.train(gradient_steps=1, batch_size=8)
+    before = step_sizes(model)
+    assert before == {
+        "latent_optimizer": 2e-4,
+        "actor_optimizer": 3e-4,
+        "critic_optimizer": 3e-4,
+        "cost_critic_optimizer": 3e-4,
+        "ent_coef_optimizer": 3e-4,
+        "lagrange": 2e-4,
+    }
+    model.num_timesteps = 100
+    for _ in range(2):  # the factor applies once, not once per train() call
+        model.train(gradient_steps=1, batch_size=8)
+        assert step_sizes(model) == {name: pytest.approx(0.5 * value) for name, value in before.items()}
+
+
+def test_no_milestone_no_decay() -> None:
+    model = small_model(HazardPointEnv())
+    model.learn(45)
+    model.num_timesteps = 10**9
+    model.train(gradient_steps=1, batch_size=8)
+    assert step_sizes(model)["actor_optimizer"] == 2e-4 and step_sizes(model)["latent_optimizer"] == 1e-4
+
+
+@pytest.mark.parametrize("rule", ["sgd", "episode", "critic"])
+def test_multiplier_steps_with_the_decayed_step_size(rule: str, monkeypatch) -> None:
+    rates = []
+    original = lagrange.sgd_lagrange_step
+
+    def spy(raw: float, cost: float, budget: float, learning_rate: float) -> float:
+        rates.append(learning_rate)
+        return original(raw, cost, budget, learning_rate)
+
+    monkeypatch.setattr("sb3_dsslac.lagrange.sgd_lagrange_step", spy)
+    monkeypatch.setattr("sb3_dsslac.dsslac.sgd_lagrange_step", spy)
+    model = small_model(HazardPointEnv(), lagrange=rule, lr_decay_milestone=50, lr_decay_factor=0.25)
+    model.learn(80)
+    assert rates and set(rates) <= {2e-4, 0.25 * 2e-4}
+    assert rates[-1] == pytest.approx(0.25 * 2e-4)
+
+
+def test_milestone_is_saved_and_a_resumed_run_keeps_the_decayed_step_sizes(tmp_path) -> None:
+    model = small_model(HazardPointEnv(), lr_decay_milestone=60, lr_decay_factor=0.1)
+    model.learn(50)
+    assert step_sizes(model)["actor_optimizer"] == pytest.approx(2e-4)
+    model.save(tmp_path / "model.zip")
+    loaded = DSSLAC.load(tmp_path / "model.zip", env=HazardPointEnv())
+    assert (loaded.lr_decay_milestone, loaded.lr_decay_factor) == (60, 0.1)
+    loaded.learn(30, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 80
+    assert step_sizes(loaded) == pytest.approx({name: 0.1 * value for name, value in step_sizes(model).items()})
+    loaded.save(tmp_path / "resumed.zip")
+    again = DSSLAC.load(tmp_path / "resumed.zip", env=HazardPointEnv())
+    again.learn(10, reset_num_timesteps=False)
+    assert step_sizes(again) == pytest.approx(step_sizes(loaded))
+
+
+def test_bad_milestone_keywords_are_rejected() -> None:
+    with pytest.raises(ValueError, match="lr_decay_factor"):
+        small_model(HazardPointEnv(), lr_decay_factor=0.0)
+    with pytest.raises(ValueError, match="lr_decay_milestone"):
+        small_model(HazardPointEnv(), lr_decay_milestone=-1)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Keywords given twice
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "other"),
+    [
+        ("image_noise", 0.1, 0.2),
+        ("cost_loss_weight", 3.0, 4.0),
+        ("cost_positive_weight", 10.0, 20.0),
+        ("latent_learning_rate", 1e-3, 2e-3),
+        ("cost_critic", "mean", "iqn"),
+    ],
+)
+def test_a_keyword_given_twice_must_agree(name: str, value, other) -> None:
+    policy_kwargs = {**SMALL["policy_kwargs"], name: other}
+    with pytest.raises(ValueError, match=rf"{name}={value!r} and policy_kwargs=.*{other!r}"):
+        small_model(HazardPointEnv(), policy_kwargs=policy_kwargs, **{name: value})
+    agreeing = small_model(HazardPointEnv(), policy_kwargs={**SMALL["policy_kwargs"], name: value}, **{name: value})
+    assert agreeing.policy_kwargs[name] == value
+
+
+def test_policy_kwargs_alone_are_used_and_not_modified(tmp_path) -> None:
+    policy_kwargs = {**SMALL["policy_kwargs"], "image_noise": 0.05, "latent_learning_rate": 3e-4, "cost_critic": "mean"}
+    given = dict(policy_kwargs)
+    model = small_model(HazardPointEnv(), policy_kwargs=policy_kwargs)
+    assert policy_kwargs == given
+    assert model.policy.latent.image_std == pytest.approx(0.05**0.5)
+    assert model.latent_learning_rate == 3e-4 and model.policy.latent_optimizer.param_groups[0]["lr"] == 3e-4
+    assert model.cost_critic == "mean" and type(model.policy.cost_critic).__name__ == "MeanCostCritic"
+    default = small_model(HazardPointEnv())
+    assert default.policy.latent.image_std == pytest.approx(0.4**0.5) and default.cost_critic == "iqn"
+
+    model = small_model(HazardPointEnv(), image_noise=0.07, cost_loss_weight=5.0)
+    model.learn(45)
+    model.save(tmp_path / "model.zip")
+    loaded = DSSLAC.load(tmp_path / "model.zip", env=HazardPointEnv())
+    assert loaded.policy.latent.image_std == pytest.approx(0.07**0.5)
+    assert loaded.policy.latent.cost_loss_weight == 5.0
+    loaded.learn(10, reset_num_timesteps=False)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Table 5.2 and the reference code's values
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def defaults(function) -> dict:
+    return {name: p.default for name, p in inspect.signature(function).parameters.items()}
+
+
+def test_table_5_2_defaults() -> None:
+    model = DSSLAC("LatentPolicy", HazardPointEnv(max_episode_steps=500), _init_setup_model=False)
+    expected = {
+        "learning_rate": 2e-4,
+        "latent_learning_rate": 1e-4,
+        "buffer_size": 200_000,
+        "learning_starts": 30_000,  # W_p = 60k simulator steps at action repeat 2
+        "latent_pretrain_steps": 30_000,  # W_t
+        "batch_size": 64,
+        "latent_batch_size": 32,
+        "sequence_length": 10,
+        "tau": 5e-3,
+        "gamma": 0.99,
+        "cost_gamma": 0.995,
+        "gradient_steps": 100,
+        "cost_limit": 25.0,
+        "lagrange": "sgd",
+        "lagrange_init": 0.02,
+        "lagrange_learning_rate": 2e-4,
+        "n_quantiles": 64,  # N = N' = K
+        "cvar_risk_level": 1.0,
+        "max_grad_norm": 40.0,
+        "actor_max_grad_norm": 80.0,
+        "cost_critic": "iqn",
+        "ent_coef": "auto_4e-3",
+        "share_latent_batch": False,
+        "bf16": False,
+        "lr_decay_milestone": None,
+    }
+    assert {name: getattr(model, name) for name in expected} == expected
+    assert {name: model.policy_kwargs[name] for name in ("image_noise", "cost_loss_weight", "cost_positive_weight")} == {
+        "image_noise": 0.4,
+        "cost_loss_weight": 30.0,
+        "cost_positive_weight": 100.0,
+    }
+    assert model.cost_budget_per_step == pytest.approx(0.05)
+    policy = defaults(LatentPolicy.__init__)
+    assert (policy["z1_dim"], policy["z2_dim"], policy["feature_dim"], policy["hidden_units"]) == (32, 200, 200, (256, 256))
+    assert (policy["n_cosines"], policy["cost_critic_hidden_dim"]) == (64, 512)
+
+    model._setup_model()
+    assert model.train_freq.frequency == 100
+    assert th.exp(model.log_ent_coef).item() == pytest.approx(4e-3)
+    assert model.lagrange_multiplier == pytest.approx(0.02)
+    assert model.target_entropy == -2.0
+    assert model.policy.latent.image_std == pytest.approx(0.4**0.5)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# TD targets
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+class FakeTwinQ(nn.Module):
+    """Q1 = 10 z_0 + a_0, Q2 = 10 z_0 + 5: the min picks Q1 for small actions."""
+
+    def forward(self, z: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        return 10 * z[:, :1] + actions[:, :1], 10 * z[:, :1] + 5
+
+
+class FakeQuantiles(nn.Module):
+    """Z_tau = 100 z_0 + a_0 + tau."""
+
+    def forward(self, z: th.Tensor, actions: th.Tensor, taus: th.Tensor) -> th.Tensor:
+        return 100 * z[:, :1] + actions[:, :1] + taus
+
+
+def test_td_targets_on_a_hand_built_batch(monkeypatch) -> None:
+    model = small_model(HazardPointEnv(), gamma=0.9, cost_gamma=0.5)
+    policy = model.policy
+    monkeypatch.setattr(policy, "critic_target", FakeTwinQ())
+    monkeypatch.setattr(policy, "cost_critic_target", FakeQuantiles())
+
+    def action_log_prob(z: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        return th.full((z.shape[0], 2), 0.5) * z[:, :1], -z[:, 0]  # a' = 0.5 z'_0, log pi = -z'_0
+
+    monkeypatch.setattr(policy.actor, "action_log_prob", action_log_prob)
+    batch_size, steps, z_dim = 3, SMALL["sequence_length"], policy.latent.z_dim
+    # z_0 of frame t is t + 1 + 10 * sequence: the index each term reads shows in the result
+    latents = (th.arange(steps + 1.0) + 1).repeat(batch_size, 1) + 10 * th.arange(batch_size)[:, None]
+    latents = latents[..., None].expand(batch_size, steps + 1, z_dim).clone()
+    rewards = th.arange(batch_size * steps, dtype=th.float32).reshape(batch_size, steps)
+    costs = rewards * 0.1
+    # Sequence 0 runs on; 1 is terminated at its last transition; 2 was terminated at the previous one only (as a time
+    # limit truncation, the last transition bootstraps)
+    terminated = th.zeros(batch_size, steps)
+    terminated[1, -1] = 1.0
+    terminated[2, -2] = 1.0
+    batch = SequenceBatch(th.zeros(batch_size, steps + 1, 4), th.zeros(batch_size, steps, 2), rewards, costs, terminated)
+    ent_coef = th.tensor([0.2])
+    taus = th.rand(batch_size, 5)
+
+    target_q, target_quantiles = model._td_targets(batch, latents, ent_coef, taus)
+
+    assert target_q.shape == (batch_size, 1) and target_quantiles.shape == (batch_size, 5)
+    next_z0 = latents[:, -1, 0:1]
+    next_a0 = 0.5 * next_z0
+    next_q = th.minimum(10 * next_z0 + next_a0, 10 * next_z0 + 5) - 0.2 * (-next_z0)
+    alive = th.tensor([[1.0], [0.0], [1.0]])
+    th.testing.assert_close(target_q, rewards[:, -1:] + 0.9 * alive * next_q)
+    th.testing.assert_close(target_quantiles, costs[:, -1:] + 0.5 * alive * (100 * next_z0 + next_a0 + taus))
+    assert not target_q.requires_grad and not target_quantiles.requires_grad
+
+
+def test_the_update_uses_z_at_index_minus_2() -> None:
+    model = small_model(HazardPointEnv())
+    model.learn(45)
+    seen = []
+    model.policy.critic.register_forward_pre_hook(lambda module, args: seen.append(args[0].detach().clone()))
+    latents = th.randn(8, SMALL["sequence_length"] + 1, model.policy.latent.z_dim)
+    batch = model.replay_buffer.gather(model.replay_buffer.sample_indices(1, 8)[0])
+    model._actor_critic_update(batch, latents)
+    th.testing.assert_close(seen[0], latents[:, -2])
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Latent model loss
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def test_kl_is_against_n01_at_t0_and_the_teacher_forced_prior_after(monkeypatch) -> None:
+    th.manual_seed(0)
+    model = LatentModel((4,), 2, feature_dim=8, z1_dim=3, z2_dim=5, hidden_units=(16,))
+    batch, steps = 2, 4
+    z1_mean, z1_std = th.randn(batch, steps + 1, 3), th.rand(batch, steps + 1, 3) + 0.2
+    rollout = LatentRollout(z1_mean, z1_std, th.randn(batch, steps + 1, 3), th.randn(batch, steps + 1, 5))
+    monkeypatch.setattr(model, "posterior", lambda features, actions: rollout)
+    actions = th.rand(batch, steps, 2) * 2 - 1
+    zeros = th.zeros(batch, steps)
+    _, parts = model.loss(th.randn(batch, steps + 1, 4), actions, zeros, zeros, zeros)
+
+    posterior = Normal(rollout.z1_mean, rollout.z1_std)
+    expected = kl_divergence(Normal(posterior.loc[:, 0], posterior.scale[:, 0]), Normal(0.0, 1.0)).sum(dim=-1)
+    for t in range(1, steps + 1):
+        prior_mean, prior_std = model.z1_prior(rollout.z2[:, t - 1], actions[:, t - 1])  # posterior z2, real action
+        expected = expected + kl_divergence(
+            Normal(rollout.z1_mean[:, t], rollout.z1_std[:, t]), Normal(prior_mean, prior_std)
+        ).sum(dim=-1)
+    th.testing.assert_close(parts["kl"], expected.mean())
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Quantile fractions and isolation of the actor's loss
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def test_cvar_taus_reach_only_the_actor(monkeypatch) -> None:
+    model = small_model(HazardPointEnv(), cvar_risk_level=0.2)
+    model.learn(45)
+    loss_taus, target_taus, critic_taus = [], [], []
+    original_loss, original_targets = dsslac_module.quantile_huber_loss, model._td_targets
+    monkeypatch.setattr(
+        dsslac_module, "quantile_huber_loss", lambda c, t, taus: loss_taus.append(taus) or original_loss(c, t, taus)
+    )
+    monkeypatch.setattr(
+        model, "_td_targets", lambda b, z, e, taus: target_taus.append(taus) or original_targets(b, z, e, taus)
+    )
+    model.policy.cost_critic.register_forward_pre_hook(lambda module, args: critic_taus.append(args[2].detach()))
+    model.train(gradient_steps=2, batch_size=8)
+
+    for taus in (*loss_taus, *target_taus):  # the critic learns every quantile: U(0, 1), never the tail only
+        assert taus.min() < 0.5 and taus.max() <= 1.0
+    assert len(loss_taus) == len(target_taus) == 2
+    tail_calls = [taus for taus in critic_taus if taus.min() >= 0.8]
+    assert len(tail_calls) == 2  # one CVaR batch per update, for the actor
+    assert th.equal(critic_taus[0], loss_taus[0])  # and the critic's own forward uses its U(0, 1) fractions
+
+
+def test_the_actor_loss_leaves_the_critics_alone(monkeypatch) -> None:
+    model = small_model(HazardPointEnv())
+    model.learn(45)
+    policy = model.policy
+    critics = [*policy.critic.parameters(), *policy.cost_critic.parameters()]
+    snapshots: dict[str, list[th.Tensor]] = {}
+
+    def spy(optimizer: th.optim.Optimizer, name: str, take) -> None:
+        step = optimizer.step
+        monkeypatch.setattr(optimizer, "step", lambda *a, **k: (snapshots.__setitem__(name, take()), step(*a, **k))[1])
+
+    # The critics' gradients when their own steps are taken, and again when the actor steps
+    spy(policy.cost_critic_optimizer, "critic_grads", lambda: [p.grad.clone() for p in critics])
+    spy(policy.actor_optimizer, "grads_at_actor_step", lambda: [p.grad.clone() for p in critics])
+    actor_before = [p.detach().clone() for p in policy.actor.parameters()]
+    batch = model.replay_buffer.gather(model.replay_buffer.sample_indices(1, 8)[0])
+    latents = th.randn(8, SMALL["sequence_length"] + 1, policy.latent.z_dim)
+    model._actor_critic_update(batch, latents)
+
+    policy.critic_optimizer.zero_grad(set_to_none=False)  # the reward critic's grads came before the snapshot
+    for before, at_actor_step in zip(snapshots["critic_grads"], snapshots["grads_at_actor_step"], strict=True):
+        th.testing.assert_close(before, at_actor_step, rtol=0, atol=0)
+    assert any(not th.equal(a, p) for a, p in zip(actor_before, policy.actor.parameters(), strict=True))
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Smaller deviations: clipping, TF32, the critic rule's budget, the PID rule's smoothing
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def test_iqn_cosine_and_quantile_nets_are_clipped_each() -> None:
+    model = small_model(HazardPointEnv())
+    cost_critic = model.policy.cost_critic
+    for parameter in cost_critic.cosine_net.parameters():
+        parameter.grad = th.full_like(parameter, 1e-3)  # a small norm, far under 40
+    for parameter in cost_critic.quantile_net.parameters():
+        parameter.grad = th.full_like(parameter, 100.0)
+    cosine_grads = [p.grad.clone() for p in cost_critic.cosine_net.parameters()]
+    model._clip_cost_critic_gradients()
+    # One joint clip would have shrunk the cosine net's gradient with the quantile net's
+    assert all(th.equal(p.grad, g) for p, g in zip(cost_critic.cosine_net.parameters(), cosine_grads, strict=True))
+    norm = th.nn.utils.get_total_norm([p.grad for p in cost_critic.quantile_net.parameters()])
+    assert norm.item() == pytest.approx(40.0, rel=1e-4)
+
+    mean = small_model(HazardPointEnv(), cost_critic="mean")
+    for parameter in mean.policy.cost_critic.parameters():
+        parameter.grad = th.full_like(parameter, 100.0)
+    mean._clip_cost_critic_gradients()
+    norm = th.nn.utils.get_total_norm([p.grad for p in mean.policy.cost_critic.parameters()])
+    assert norm.item() == pytest.approx(40.0, rel=1e-4)
+
+
+def test_tf32_scope_restores_the_process_settings() -> None:
+    flags = th.backends.cuda.matmul, th.backends.cudnn
+    before = tuple(flag.allow_tf32 for flag in flags)
+    th.backends.cuda.matmul.allow_tf32 = False
+    try:
+        with dsslac_module.tf32_matmul(True):
+            assert th.backends.cuda.matmul.allow_tf32 and th.backends.cudnn.allow_tf32
+        assert not th.backends.cuda.matmul.allow_tf32
+        with pytest.raises(KeyError), dsslac_module.tf32_matmul(True):
+            raise KeyError
+        assert not th.backends.cuda.matmul.allow_tf32
+        with dsslac_module.tf32_matmul(False):
+            assert not th.backends.cuda.matmul.allow_tf32
+    finally:
+        th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32 = before
+
+
+def test_tf32_is_requested_only_for_learning_on_cuda(monkeypatch) -> None:
+    requested = []
+    original = dsslac_module.tf32_matmul
+    monkeypatch.setattr(dsslac_module, "tf32_matmul", lambda enabled: requested.append(enabled) or original(enabled))
+    before = th.backends.cuda.matmul.allow_tf32
+    model = small_model(HazardPointEnv(), device="cpu")
+    assert th.backends.cuda.matmul.allow_tf32 == before and requested == []  # not at construction
+    model.learn(10)
+    assert requested == [False]  # a CPU model leaves the switches alone
+    model.device = th.device("cuda")  # what the scope asks for on CUDA (nothing runs: no steps left)
+    model.learn(0, reset_num_timesteps=False)
+    model.tf32 = False
+    model.learn(0, reset_num_timesteps=False)
+    assert requested == [False, True, False]
+
+
+def test_critic_rule_budget_is_the_infinite_horizon_value(monkeypatch) -> None:
+    model = small_model(HazardPointEnv(max_episode_steps=500), lagrange="critic")
+    assert model.critic_cost_budget == pytest.approx(10.0)
+    assert model.discounted_cost_budget == pytest.approx(9.184, abs=1e-3)  # still the mean critic's initial bias
+    budgets = []
+    original = dsslac_module.sgd_lagrange_step
+    monkeypatch.setattr(dsslac_module, "sgd_lagrange_step", lambda r, c, b, lr: budgets.append(b) or original(r, c, b, lr))
+    model.learn(50)
+    assert budgets and budgets == pytest.approx([10.0] * len(budgets))
+
+
+def test_pid_rule_uses_the_smoothing_and_saves_its_state(tmp_path, monkeypatch) -> None:
+    seen = []
+    original = lagrange.pid_lagrange_step
+    monkeypatch.setattr(lagrange, "pid_lagrange_step", lambda *args: seen.append(args[-1]) or original(*args))
+    model = small_model(HazardPointEnv(), lagrange="pid", pid_cost_ema=0.7, learning_starts=20)
+    model.learn(60)
+    assert seen == [0.7, 0.7] and model.pid_state[1] is not None  # episodes end at steps 30 and 60
+    model.save(tmp_path / "model.zip")
+    loaded = DSSLAC.load(tmp_path / "model.zip")
+    assert loaded.pid_state == model.pid_state and loaded.pid_cost_ema == 0.7
+    with pytest.raises(ValueError, match="pid_cost_ema"):
+        small_model(HazardPointEnv(), pid_cost_ema=1.0)
