@@ -12,6 +12,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from sb3_dsslac.actor import LatentActor
 from sb3_dsslac.critics import IQNCostCritic, MeanCostCritic, TwinQCritic
 from sb3_dsslac.latent import LatentModel
+from sb3_dsslac.optim import fast_adam_kwargs
 
 # Filter state carried through ``predict``: (z2 (n_envs, z2_dim), previous action scaled to [-1, 1] (n_envs, action_dim))
 FilterState = tuple[np.ndarray, np.ndarray]
@@ -45,7 +46,8 @@ class LatentPolicy(BasePolicy):
         ``set_observation_statistics``; saved with the policy). Without it, the fixed-variance likelihood lets large
         dimensions (an accelerometer's 9.81) drown small informative ones (lidar in [0, 1])
     :param optimizer_class: optimizer of every network
-    :param optimizer_kwargs: extra optimizer keywords
+    :param optimizer_kwargs: extra optimizer keywords (Adam and AdamW get ``fused=True`` unless ``fused`` or ``foreach``
+        is given)
     """
 
     latent: LatentModel
@@ -130,14 +132,12 @@ class LatentPolicy(BasePolicy):
             target.requires_grad_(False)
             target.train(False)
 
-        self.latent_optimizer = self.optimizer_class(
-            self.latent.parameters(), lr=self.latent_learning_rate, **self.optimizer_kwargs
-        )
-        self.actor_optimizer = self.optimizer_class(self.actor.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
-        self.critic_optimizer = self.optimizer_class(self.critic.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
-        self.cost_critic_optimizer = self.optimizer_class(
-            self.cost_critic.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
-        )
+        optimizer_kwargs = fast_adam_kwargs(self.optimizer_class, self.optimizer_kwargs)
+        latent_lr = self.latent_learning_rate
+        self.latent_optimizer = self.optimizer_class(self.latent.parameters(), lr=latent_lr, **optimizer_kwargs)
+        self.actor_optimizer = self.optimizer_class(self.actor.parameters(), lr=lr_schedule(1), **optimizer_kwargs)
+        self.critic_optimizer = self.optimizer_class(self.critic.parameters(), lr=lr_schedule(1), **optimizer_kwargs)
+        self.cost_critic_optimizer = self.optimizer_class(self.cost_critic.parameters(), lr=lr_schedule(1), **optimizer_kwargs)
 
     def _make_cost_critic(self, z_dim: int, action_dim: int) -> IQNCostCritic | MeanCostCritic:
         if self.cost_critic_type == "mean":
