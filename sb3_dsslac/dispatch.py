@@ -92,14 +92,3 @@ def optimizer_step_tensors(model: Any) -> list[th.Tensor]:
         for state in optimizer.state.values()
         if isinstance(state.get("step"), th.Tensor)
     ]
-
-
-def count_updates(model: Any, gradient_steps: int = 3) -> DispatchCounter:
-    """
-    The ops and syncs of ``model.train(gradient_steps, model.batch_size)``, the optimizers' step-counter reads left
-    out. Run it after a warm-up (the latent pre-training, compilation and the optimizers' first steps) and divide by
-    ``gradient_steps`` for per-update figures.
-    """
-    with DispatchCounter(ignore_sync_of=optimizer_step_tensors(model)) as counter:
-        model.train(gradient_steps, model.batch_size)
-    return counter
