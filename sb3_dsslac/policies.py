@@ -6,7 +6,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.preprocessing import preprocess_obs
+from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 
 from sb3_dsslac.actor import LatentActor
@@ -102,6 +102,7 @@ class LatentPolicy(BasePolicy):
         self.cost_positive_weight = cost_positive_weight
         self.latent_learning_rate = latent_learning_rate
         self.normalize_vectors = normalize_vectors
+        self._scale_images = normalize_images and is_image_space(observation_space)
         vector_shape = self.observation_space.shape if len(self.observation_space.shape) == 1 else (0,)  # type: ignore[arg-type]
         self.register_buffer("observation_mean", th.zeros(vector_shape))
         self.register_buffer("observation_std", th.ones(vector_shape))
@@ -171,13 +172,13 @@ class LatentPolicy(BasePolicy):
     def preprocess(self, observations: th.Tensor) -> th.Tensor:
         """
         Raw observations (any leading dims, as stored) to floats: uint8 images scaled to [0, 1], vectors standardised
-        (identity until ``set_observation_statistics``).
+        (identity until ``set_observation_statistics``). Decided at construction, so that it compiles without branches.
         """
-        preprocessed = preprocess_obs(observations, self.observation_space, normalize_images=self.normalize_images)
-        assert isinstance(preprocessed, th.Tensor)
+        if self._scale_images:
+            return observations.float() / 255.0
         if self.observation_mean.numel() > 0:
-            return (preprocessed - self.observation_mean) / self.observation_std
-        return preprocessed
+            return (observations.float() - self.observation_mean) / self.observation_std
+        return observations.float()
 
     def set_observation_statistics(self, observations: np.ndarray, min_std: float = 1e-2) -> None:
         """
