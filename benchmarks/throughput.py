@@ -214,7 +214,9 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, help="rounds taking the paths in turn, median reported (default 3; quick: 1)")
     parser.add_argument("--burst", type=int, help="env steps and updates per training burst (default 100; quick: 10)")
     parser.add_argument("--compile", action="store_true", help="time compile_updates at the thesis shapes on the CPU too")
-    parser.add_argument("--presets", nargs="*", default=["cpu", "cpu_learning"], choices=["cpu", "cpu_learning"])
+    parser.add_argument(
+        "--presets", nargs="*", default=["cpu", "cpu_learning"], choices=["cpu", "cpu_learning"], help="small presets timed"
+    )
     parser.add_argument(
         "--thesis",
         action=argparse.BooleanOptionalAction,
@@ -289,11 +291,14 @@ def main() -> None:
 
     name = th.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {th.get_num_threads()} torch threads"
     header = ["| update path | updates/s | vs first row | ops/update | syncs/update |", "|---|---:|---:|---:|---:|"]
+    thesis_setup = (
+        f" Thesis shapes (64x64, L=10, batches 32 + 64, buffer of {args.buffer_size:,} frames): {args.updates} timed updates "
+        f"per path in {args.rounds} rounds (median)."
+    )
     lines = [
-        f"DS-SLAC throughput on {name}, torch {th.__version__}. Thesis shapes (64x64, L=10, batches 32 + 64, buffer of "
-        f"{args.buffer_size:,} frames): {args.updates} timed updates per path in {args.rounds} rounds (median). Small "
-        f"presets: {args.preset_updates} timed updates per path. Ops and host syncs: a DispatchCounter over 3 updates "
-        "after the warm-up, divided by 3, the reads of Adam's step counters left out.",
+        f"DS-SLAC throughput on {name}, torch {th.__version__}.{thesis_setup if args.thesis else ''} Small presets: "
+        f"{args.preset_updates} timed updates per path. Ops and host syncs: a DispatchCounter over 3 updates after the "
+        "warm-up, divided by 3, the reads of Adam's step counters left out.",
         "",
         *([*header, *thesis_rows, ""] if thesis_rows else []),
         *([*header, *preset_rows, ""] if preset_rows else []),
