@@ -1,15 +1,21 @@
 """
-Training throughput of DS-SLAC at the thesis's shapes: 64x64 images, sequences of 10, latent batch 32, actor-critic
-batch 64 and the thesis's networks, on SafetyGym/PointGoal1-v0 frames. Prints one table:
+Training throughput of DS-SLAC at the thesis's shapes (64x64 images, sequences of 10, latent batch 32, actor-critic
+batch 64 and the thesis's networks) and at the small presets ``cpu`` (PointGoal1 pixels) and ``cpu_learning``
+(PointGoal1 state vectors), on SafetyGym/PointGoal1-v0. Prints one table:
 
-- updates/s of each update path (one update = one latent-model update + one actor-critic update, Algorithm 1);
+- for each update path (one update = one latent-model update + one actor-critic update, Algorithm 1): updates/s, ATen
+  ops per update and host syncs per update (``sb3_dsslac.dispatch.DispatchCounter`` over 3 updates after the warm-up,
+  the reads of Adam's step counters left out);
 - simulator and agent steps/s of the env alone;
-- agent steps/s of real training (bursts of ``--burst`` env steps and ``--burst`` updates);
+- agent steps/s of real training at the thesis shapes (bursts of ``--burst`` env steps and ``--burst`` updates);
 - peak host and device memory.
 
-    python benchmarks/throughput.py                  # CPU, 10 timed updates per path
-    python benchmarks/throughput.py --quick          # CPU, under 2 minutes
-    python benchmarks/throughput.py --device cuda    # GPU, adds the compiled path
+    python benchmarks/throughput.py                  # CPU, 12 timed updates per thesis-shape path
+    python benchmarks/throughput.py --quick          # CPU: fewer updates and paths, about 4 minutes on 2 cores
+    python benchmarks/throughput.py --device cuda    # GPU, adds the compile_updates paths at the thesis shapes
+
+The small presets always time ``compile_updates=True`` beside the eager update, the thesis shapes only on CUDA or
+with ``--compile``.
 
 The first row re-creates the thesis code's update path (``../shared/REFERENCE_IMPLS.md`` sections 6 and 9) on this
 package's networks, so that both run in the same process on the same machine: each batch assembled on the host by a
@@ -20,6 +26,7 @@ tensor) and an extra logging forward of the cost critic.
 
 import argparse
 import resource
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -35,6 +42,8 @@ import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
 from sb3_dsslac import DSSLAC
 from sb3_dsslac.buffers import SequenceBatch
 from sb3_dsslac.critics import sample_taus
+from sb3_dsslac.dispatch import DispatchCounter, optimizer_step_tensors
+from sb3_dsslac.presets import preset_hyperparams
 
 ENV_ID = "SafetyGym/PointGoal1-v0"
 
@@ -122,32 +131,71 @@ def with_buffer_of(source: DSSLAC, device: str, **keywords: Any) -> DSSLAC:
     return model
 
 
-def updates_per_second(
-    runners: dict[str, Callable[[int], Any]], n_updates: int, rounds: int, device: th.device
-) -> dict[str, float]:
+def measure_paths(
+    paths: dict[str, tuple[DSSLAC, Callable[[int], Any]]], n_updates: int, rounds: int, device: th.device
+) -> tuple[list[str], dict[str, float]]:
     """
-    Median updates/s of each ``runner(n)`` (running ``n`` updates) over ``rounds`` rounds that take the runners in
-    turn, so that a machine whose speed drifts (shared hosts, boost clocks) slows every path alike. Each runner first
-    runs two untimed updates (allocations, cuDNN autotuning, compilation).
+    Table rows of updates/s (and the ratio to the first path), ATen ops per update and host syncs per update of each
+    path ``label: (model, run)``, ``run(n)`` running ``n`` updates of ``model``; and the updates/s by label.
+
+    Each path first runs one untimed update (allocations, cuDNN autotuning, compilation), then 3 updates under a
+    ``DispatchCounter`` (the reads of the optimizers' step counters, host tensors that wait for nothing, left out),
+    which also warm up any recompilation at a second call. Then the median updates/s over ``rounds`` rounds that take
+    the paths in turn, so that a machine whose speed drifts (shared hosts, boost clocks) slows every path alike.
     """
-    for run_updates in runners.values():
-        run_updates(2)
-    rates: dict[str, list[float]] = {name: [] for name in runners}
+    dispatched: dict[str, tuple[float, float]] = {}
+    for label, (model, run_updates) in paths.items():
+        print(f"warming up and counting: {label}", file=sys.stderr, flush=True)
+        run_updates(1)
+        with DispatchCounter(ignore_sync_of=optimizer_step_tensors(model)) as counter:
+            run_updates(3)
+        dispatched[label] = counter.ops / 3, counter.syncs / 3
+    rates: dict[str, list[float]] = {label: [] for label in paths}
     per_round = max(1, n_updates // rounds)
     for _ in range(rounds):
-        for name, run_updates in runners.items():
+        for label, (_, run_updates) in paths.items():
             synchronize(device)
             start = time.perf_counter()
             run_updates(per_round)
             synchronize(device)
-            rates[name].append(per_round / (time.perf_counter() - start))
-    return {name: float(np.median(values)) for name, values in rates.items()}
+            rates[label].append(per_round / (time.perf_counter() - start))
+    medians = {label: float(np.median(values)) for label, values in rates.items()}
+    first = next(iter(medians.values()))
+    rows = []
+    for label, rate in medians.items():
+        ops, syncs = dispatched[label]
+        rows.append(f"| {label} | {rate:.2f} | {rate / first:.2f}x | {ops:,.0f} | {syncs:.1f} |")
+        print(rows[-1], flush=True)  # as it comes, for runs under a timeout
+    return rows, medians
 
 
-def training_rate(device: str, buffer_size: int, fill_steps: int, burst: int, **keywords: Any) -> float:
-    """Agent steps/s of ``learn`` after the warm-up: one burst of ``burst`` env steps then ``burst`` updates (after
+def preset_paths(preset: str, device: str, fill_steps: int) -> dict[str, tuple[DSSLAC, Callable[[int], Any]]]:
+    """
+    Eager and ``compile_updates=True`` models of a small preset (``cpu`` on PointGoal1 pixels, ``cpu_learning`` on its
+    state vectors), sharing one buffer of ``fill_steps`` random-action agent steps. The first update runs the
+    preset's (here empty) latent pre-training, which fixes the standardisation of state vectors.
+    """
+    obs_type = "state" if preset == "cpu_learning" else "pixels"
+    paths: dict[str, tuple[DSSLAC, Callable[[int], Any]]] = {}
+    source: DSSLAC | None = None
+    for label, keywords in (("eager", {}), ("compile_updates=True", {"compile_updates": True})):
+        set_random_seed(0)
+        hyperparams = preset_hyperparams(preset, {"learning_starts": fill_steps, "latent_pretrain_steps": 0, **keywords})
+        model = DSSLAC("LatentPolicy", gym.make(ENV_ID, obs_type=obs_type), device=device, seed=0, **hyperparams)
+        if source is None:
+            model.learn(fill_steps)
+            source = model
+        else:
+            model.replay_buffer = source.replay_buffer
+            model.set_logger(source.logger)
+        paths[f"{preset} preset ({obs_type}), {label}"] = (model, lambda n, model=model: model.train(n, model.batch_size))
+    return paths
+
+
+def training_rate(base: DSSLAC, device: str, burst: int, **keywords: Any) -> float:
+    """Agent steps/s of ``learn`` on ``base``'s buffer: one burst of ``burst`` env steps then ``burst`` updates (after
     one untimed burst when compiling)."""
-    model = filled_model(device, buffer_size, fill_steps, train_freq=burst, gradient_steps=burst, **keywords)
+    model = with_buffer_of(base, device, learning_starts=0, train_freq=burst, gradient_steps=burst, **keywords)
     if keywords.get("compile_updates"):
         model.learn(burst, reset_num_timesteps=False)
     synchronize(model.device)
@@ -160,68 +208,101 @@ def training_rate(device: str, buffer_size: int, fill_steps: int, burst: int, **
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    parser.add_argument("--quick", action="store_true", help="2 timed updates per path and bursts of 10: under 2 min")
-    parser.add_argument("--updates", type=int, default=12, help="timed updates per path (60 is better on a GPU)")
-    parser.add_argument("--rounds", type=int, default=3, help="rounds taking the paths in turn (median reported)")
-    parser.add_argument("--burst", type=int, default=100, help="env steps and updates per training burst")
-    parser.add_argument("--compile", action="store_true", help="time compile_updates on the CPU too (always on CUDA)")
+    parser.add_argument("--quick", action="store_true", help="few timed updates, one round and bursts of 10")
+    parser.add_argument("--updates", type=int, help="timed updates per thesis-shape path (default 12; quick: 1, 20 on CUDA)")
+    parser.add_argument("--preset-updates", type=int, help="timed updates per small-preset path (default 40; quick: 10)")
+    parser.add_argument("--rounds", type=int, help="rounds taking the paths in turn, median reported (default 3; quick: 1)")
+    parser.add_argument("--burst", type=int, help="env steps and updates per training burst (default 100; quick: 10)")
+    parser.add_argument("--compile", action="store_true", help="time compile_updates at the thesis shapes on the CPU too")
+    parser.add_argument(
+        "--presets", nargs="*", default=["cpu", "cpu_learning"], choices=["cpu", "cpu_learning"], help="small presets timed"
+    )
+    parser.add_argument(
+        "--thesis",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the thesis shapes' paths, the env alone and the real training (--no-thesis: the small presets only)",
+    )
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     parser.add_argument("--buffer-size", type=int, default=200_000, help="replay buffer frames (the thesis's 200k)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results"))
     args = parser.parse_args()
-    if args.quick:
-        args.updates, args.rounds, args.burst = 2, 1, 10
+    device = th.device(args.device)
+    quick_updates = 20 if device.type == "cuda" else 1
+    args.updates = args.updates or (quick_updates if args.quick else 12)
+    args.preset_updates = args.preset_updates or (10 if args.quick else 40)
+    args.rounds = args.rounds or (1 if args.quick else 3)
+    args.burst = args.burst or (10 if args.quick else 100)
     if args.threads is not None:
         th.set_num_threads(args.threads)
     fill_steps = 1_000
-    device = th.device(args.device)
     set_random_seed(0)
 
-    base = filled_model(args.device, args.buffer_size, fill_steps)
-    paths: list[tuple[str, dict[str, Any]]] = [
-        ("this package, eager (device gather, channels-last, fused Polyak)", {}),
-        ("+ share_latent_batch", {"share_latent_batch": True}),
-        ("+ bf16", {"bf16": True}),
-        ("+ share_latent_batch + bf16", {"share_latent_batch": True, "bf16": True}),
-    ]
-    if args.compile or device.type == "cuda":
-        compiled = {"share_latent_batch": True, "bf16": True, "compile_updates": True}
-        paths.append(("+ share_latent_batch + bf16 + compile_updates", compiled))
+    thesis_rows: list[str] = []
+    rows: list[tuple[str, str]] = []
+    if args.thesis:
+        base = filled_model(args.device, args.buffer_size, fill_steps)
+        keywords_of: dict[str, dict[str, Any]] = {"this package, eager (device gather, channels-last, fused Polyak)": {}}
+        if not (args.quick and device.type == "cpu"):  # a thesis-shape update takes seconds on a CPU
+            keywords_of["+ share_latent_batch"] = {"share_latent_batch": True}
+            keywords_of["+ bf16='auto' (bfloat16 only where native)"] = {"bf16": "auto"}
+        keywords_of["+ share_latent_batch + bf16='auto'"] = {"share_latent_batch": True, "bf16": "auto"}
+        if args.compile or device.type == "cuda":
+            keywords_of["compile_updates=True"] = {"compile_updates": True}
+            if not args.quick:
+                keywords_of["+ share_latent_batch + bf16='auto' + compile_updates"] = {
+                    "share_latent_batch": True,
+                    "bf16": "auto",
+                    "compile_updates": True,
+                }
 
-    thesis = ThesisStyleUpdates(with_buffer_of(base, args.device))
-    thesis_label = "thesis-style path (re-created reference code)"
-    runners: dict[str, Callable[[int], Any]] = {thesis_label: lambda n, thesis=thesis: [thesis.update() for _ in range(n)]}
-    for label, keywords in paths:
-        set_random_seed(0)
-        model = with_buffer_of(base, args.device, **keywords)
-        runners[label] = lambda n, model=model: model.train(n, model.batch_size)
-    rates = updates_per_second(runners, args.updates, args.rounds, device)
-    thesis_rate = rates[thesis_label]
-    rows = [(f"updates/s, {label}", f"{rate:.2f}", f"{rate / thesis_rate:.2f}x") for label, rate in rates.items()]
-    best_label = max(rates, key=rates.__getitem__)
-    best = dict(paths).get(best_label, {})
-    runners.clear()  # free the models before the training run
+        thesis = ThesisStyleUpdates(with_buffer_of(base, args.device))
+        paths: dict[str, tuple[DSSLAC, Callable[[int], Any]]] = {
+            "thesis-style path (re-created reference code)": (
+                thesis.model,
+                lambda n, thesis=thesis: [thesis.update() for _ in range(n)],
+            )
+        }
+        for label, keywords in keywords_of.items():
+            set_random_seed(0)
+            model = with_buffer_of(base, args.device, **keywords)
+            paths[label] = (model, lambda n, model=model: model.train(n, model.batch_size))
+        thesis_rows, rates = measure_paths(paths, args.updates, args.rounds, device)
+        best = keywords_of[max(keywords_of, key=rates.__getitem__)]
+        del paths, thesis  # free the models before the next ones
+        env_rate, _ = single_env_rate(ENV_ID, "pixels", 500 if args.quick else 2_000)
+        rows.append(("env alone, PointGoal1 pixels: simulator steps/s", f"{2 * env_rate:,.0f}"))
+        rows.append(("env alone, PointGoal1 pixels: agent steps/s", f"{env_rate:,.0f}"))
+        fastest = ", ".join(f"{key}={value}" for key, value in best.items()) or "defaults"
+        train_rate = training_rate(base, args.device, args.burst, **best)
+        del base
+        rows.append((f"real training at the thesis shapes, agent steps/s (1 update per step, {fastest})", f"{train_rate:.2f}"))
+        hours = 500_000 / train_rate / 3600
+        rows.append(("=> hours per 1M simulator steps (500k agent steps and updates)", f"{hours:.1f}"))
+        rows.append(("peak host memory (RSS), GiB", f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f}"))
+        if device.type == "cuda":
+            rows.append(("peak device memory, GiB", f"{th.cuda.max_memory_allocated(device) / 2**30:.2f}"))
 
-    env_rate, _ = single_env_rate(ENV_ID, "pixels", 500 if args.quick else 2_000)
-    rows.append(("env alone, PointGoal1 pixels: simulator steps/s", f"{2 * env_rate:,.0f}", ""))
-    rows.append(("env alone, PointGoal1 pixels: agent steps/s", f"{env_rate:,.0f}", ""))
-    fastest = ", ".join(f"{key}={value}" for key, value in best.items()) or "defaults"
-    train_rate = training_rate(args.device, args.buffer_size, fill_steps, args.burst, **best)
-    rows.append((f"real training, agent steps/s (1 update per step, {fastest})", f"{train_rate:.2f}", ""))
-    hours = 500_000 / train_rate / 3600
-    rows.append(("=> hours per 1M simulator steps (500k agent steps and updates)", f"{hours:.1f}", ""))
-    rows.append(("peak host memory (RSS), GiB", f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f}", ""))
-    if device.type == "cuda":
-        rows.append(("peak device memory, GiB", f"{th.cuda.max_memory_allocated(device) / 2**30:.2f}", ""))
+    preset_rows = []
+    for preset in args.presets:
+        paths = preset_paths(preset, args.device, fill_steps)
+        preset_rows += measure_paths(paths, args.preset_updates, args.rounds, device)[0]
+        del paths
 
     name = th.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {th.get_num_threads()} torch threads"
+    header = ["| update path | updates/s | vs first row | ops/update | syncs/update |", "|---|---:|---:|---:|---:|"]
+    thesis_setup = (
+        f" Thesis shapes (64x64, L=10, batches 32 + 64, buffer of {args.buffer_size:,} frames): {args.updates} timed updates "
+        f"per path in {args.rounds} rounds (median)."
+    )
     lines = [
-        f"DS-SLAC throughput on {name}: thesis shapes (64x64, L=10, batches 32 + 64), {args.updates} timed updates "
-        f"per path in {args.rounds} rounds (median), buffer of {args.buffer_size:,} frames, torch {th.__version__}",
+        f"DS-SLAC throughput on {name}, torch {th.__version__}.{thesis_setup if args.thesis else ''} Small presets: "
+        f"{args.preset_updates} timed updates per path. Ops and host syncs: a DispatchCounter over 3 updates after the "
+        "warm-up, divided by 3, the reads of Adam's step counters left out.",
         "",
-        "| measure | value | vs thesis-style |",
-        "|---|---:|---:|",
-        *(f"| {label} | {value} | {ratio} |" for label, value, ratio in rows),
+        *([*header, *thesis_rows, ""] if thesis_rows else []),
+        *([*header, *preset_rows, ""] if preset_rows else []),
+        *(["| measure | value |", "|---|---:|", *(f"| {label} | {value} |" for label, value in rows)] if rows else []),
     ]
     table = "\n".join(lines)
     print("\n" + table)

@@ -1,5 +1,6 @@
-"""Reward critic (twin Q) and distributional cost critic (IQN) on the latent state z."""
+"""Reward critic (twin Q) and distributional cost critic (IQN) on the latent state z; the IQN loss is sb3-contrib's."""
 
+import itertools
 import math
 from functools import partial
 
@@ -12,24 +13,58 @@ from sb3_dsslac.latent import build_mlp, init_weights
 
 class TwinQCritic(nn.Module):
     """
-    Two independent Q-networks ``Q(z, a)``, each an MLP with LeakyReLU(0.2).
+    Two independent Q-networks ``Q(z, a)``, each an MLP with LeakyReLU(0.2), evaluated together: layer ``k`` of both
+    networks is one batched matrix product with weights (2, in, out), so the pair costs the ops of one network.
+
+    State dicts of the earlier layout (two ``nn.Sequential`` named ``q1`` and ``q2``) load into this one.
 
     :param z_dim: latent size
     :param action_dim: action size
     :param hidden_units: hidden layers of each Q-network
     """
 
+    n_critics = 2
+
     def __init__(self, z_dim: int, action_dim: int, hidden_units: tuple[int, ...] = (256, 256)) -> None:
         super().__init__()
-        activation = partial(nn.LeakyReLU, 0.2)
-        self.q1 = build_mlp(z_dim + action_dim, 1, hidden_units, activation)
-        self.q2 = build_mlp(z_dim + action_dim, 1, hidden_units, activation)
-        init_weights(self)
+        sizes = (z_dim + action_dim, *hidden_units, 1)
+        self.weights = nn.ParameterList(
+            nn.Parameter(torch.empty(self.n_critics, d_in, d_out)) for d_in, d_out in itertools.pairwise(sizes)
+        )
+        self.biases = nn.ParameterList(nn.Parameter(torch.zeros(self.n_critics, 1, d_out)) for d_out in sizes[1:])
+        for weight in self.weights:
+            # Xavier-uniform (gain 1) per network, as ``init_weights`` does for a Linear layer
+            bound = math.sqrt(6.0 / (weight.shape[1] + weight.shape[2]))
+            nn.init.uniform_(weight, -bound, bound)
+        self._register_load_state_dict_pre_hook(self._load_two_sequentials)
 
-    def forward(self, z: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
-        """Latents (B, Z) and actions (B, A) -> Q-values of both networks, each (B, 1)."""
+    def forward(self, z: Tensor, actions: Tensor) -> Tensor:
+        """
+        Latents (B, Z) and actions (B, A) -> the Q-values of both networks stacked, (2, B, 1): ``q1, q2 = critic(z, a)``
+        unpacks them.
+        """
         x = torch.cat([z, actions], dim=-1)
-        return self.q1(x), self.q2(x)
+        h = x.unsqueeze(0).expand(self.n_critics, *x.shape)
+        last = len(self.weights) - 1
+        for k, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
+            h = torch.baddbmm(bias, h, weight)
+            if k < last:
+                h = F.leaky_relu(h, 0.2)
+        return h
+
+    @staticmethod
+    def _load_two_sequentials(state_dict: dict[str, Tensor], prefix: str, *_args: object) -> None:
+        """Rewrite ``q1.<2k>.weight`` (out, in) / ``q1.<2k>.bias`` of the earlier layout into the stacked tensors."""
+        if f"{prefix}q1.0.weight" not in state_dict:
+            return
+        layer = 0
+        while f"{prefix}q1.{2 * layer}.weight" in state_dict:
+            keys = [f"{prefix}q{i}.{2 * layer}" for i in (1, 2)]
+            weights = [state_dict.pop(f"{key}.weight") for key in keys]
+            biases = [state_dict.pop(f"{key}.bias") for key in keys]
+            state_dict[f"{prefix}weights.{layer}"] = torch.stack([w.t() for w in weights])
+            state_dict[f"{prefix}biases.{layer}"] = torch.stack(biases).unsqueeze(1)
+            layer += 1
 
 
 class IQNCostCritic(nn.Module):
@@ -69,30 +104,6 @@ def sample_taus(batch_size: int, n_quantiles: int, device: torch.device | str, r
     if not 0.0 < risk_level <= 1.0:
         raise ValueError(f"risk_level must be in (0, 1], got {risk_level}")
     return 1.0 - risk_level + risk_level * torch.rand(batch_size, n_quantiles, device=device)
-
-
-def quantile_huber_loss(current_quantiles: Tensor, target_quantiles: Tensor, taus: Tensor, kappa: float = 1.0) -> Tensor:
-    """
-    Quantile regression Huber loss of IQN.
-
-    With ``delta_ij = target_j - current_i`` (B, N, N'), the loss is
-    ``|tau_i - 1{delta_ij < 0}| * Huber_kappa(delta_ij) / kappa``, summed over i and averaged over j and the batch.
-
-    :param current_quantiles: (B, N) quantiles at ``taus``
-    :param target_quantiles: (B, N') target samples (detached by the caller)
-    :param taus: (B, N) quantile fractions of ``current_quantiles``
-    :param kappa: Huber threshold (> 0)
-    :return: scalar loss
-    """
-    if current_quantiles.shape != taus.shape or target_quantiles.shape[0] != current_quantiles.shape[0]:
-        raise ValueError(
-            f"expected current (B, N) = taus (B, N) and target (B, N'), got {tuple(current_quantiles.shape)}, "
-            f"{tuple(taus.shape)} and {tuple(target_quantiles.shape)}"
-        )
-    delta = target_quantiles.unsqueeze(1) - current_quantiles.unsqueeze(2)  # (B, N, N')
-    huber = F.huber_loss(delta, torch.zeros_like(delta), reduction="none", delta=kappa)
-    weight = (taus.unsqueeze(2) - (delta.detach() < 0).to(delta.dtype)).abs()
-    return (weight * huber / kappa).sum(dim=1).mean()
 
 
 class MeanCostCritic(nn.Module):

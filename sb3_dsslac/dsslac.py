@@ -10,6 +10,7 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from sb3_contrib.common.utils import quantile_huber_loss
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -20,15 +21,10 @@ from torch.nn import functional as F
 from tqdm.auto import tqdm
 
 from sb3_dsslac.buffers import SequenceBatch, SequenceReplayBuffer
-from sb3_dsslac.critics import IQNCostCritic, quantile_huber_loss, sample_taus
+from sb3_dsslac.critics import IQNCostCritic, sample_taus
 from sb3_dsslac.env_info import action_repeat_of, cost_from_info, episode_length_of
-from sb3_dsslac.lagrange import (
-    LAGRANGE_RULES,
-    LagrangeCallback,
-    inverse_softplus,
-    sgd_lagrange_step,
-    softplus,
-)
+from sb3_dsslac.lagrange import LAGRANGE_RULES, LagrangeCallback, inverse_softplus, sgd_lagrange_step_on_device, softplus
+from sb3_dsslac.optim import adam_step, clip_grads, init_adam_state
 from sb3_dsslac.policies import LatentPolicy
 
 SelfDSSLAC = TypeVar("SelfDSSLAC", bound="DSSLAC")
@@ -49,6 +45,34 @@ def tf32_matmul(enabled: bool) -> Iterator[None]:
         yield
     finally:
         th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32 = previous
+
+
+def has_native_bf16(device: th.device) -> bool:
+    """Whether ``device`` computes bfloat16 natively: a CUDA GPU that supports it, or a CPU with AVX512-BF16 or AMX."""
+    if device.type == "cuda":
+        return th.cuda.is_bf16_supported()
+    if device.type == "cpu":
+        return th.cpu._is_avx512_bf16_supported() or th.cpu._is_amx_tile_supported()
+    return False
+
+
+def resolve_bf16(bf16: bool | str, device: th.device) -> bool:
+    """
+    Whether the latent model's passes run under bfloat16 autocast: ``"auto"`` where the device computes bfloat16
+    natively; ``True`` too, with a warning and float32 instead where it does not (emulated bfloat16 made the update
+    7x slower on an AVX2-only CPU); ``False`` never.
+    """
+    if bf16 not in (True, False, "auto"):
+        raise ValueError(f"bf16 must be True, False or 'auto', got {bf16!r}")
+    if bf16 is False:
+        return False
+    native = has_native_bf16(device)
+    if bf16 is True and not native:
+        warnings.warn(
+            f"bf16=True, but this {device.type} has no native bfloat16 (no AVX512-BF16 or AMX on a CPU), where it is "
+            "several times slower than float32: the latent model stays in float32. Pass bf16='auto' to choose silently."
+        )
+    return native
 
 
 def _has_lagrange_callback(callback: MaybeCallback) -> bool:
@@ -152,10 +176,12 @@ class DSSLAC(OffPolicyAlgorithm):
         ``latent_batch_size`` sequences, and the actor-critic update uses the posterior of the first ``batch_size``
         from the same features (before the latent step). False keeps the thesis's two independent batches
     :param bf16: run the latent model's passes (the convolutions: most of the arithmetic) under bfloat16 autocast;
-        the actor, critics and every optimizer stay in float32
-    :param compile_updates: ``torch.compile`` the latent model's posterior rollout (a loop of small MLPs, the
-        launch-bound part of the update) and the cost critic; the convolutions stay eager. Costs a one-off
-        compilation (about a minute) at the first update
+        the actor, critics and every optimizer stay in float32. ``"auto"``: only where the device computes bfloat16
+        natively (a recent GPU, a CPU with AVX512-BF16 or AMX); ``True`` on a device without it warns and keeps float32
+    :param compile_updates: ``torch.compile`` the whole gradient step (latent update, actor-critic update, Adam steps,
+        Polyak) as one graph with ``fullgraph=True``; on CUDA it is replayed as CUDA graphs (``mode="reduce-overhead"``).
+        Costs a one-off compilation (a minute or more) at the first update; falls back to eager with a warning where
+        compilation fails
     :param tf32: on CUDA, float32 matrix products and convolutions use TF32 while ``learn`` runs (the process-wide
         settings come back when it returns); the reference code ran in full float32
     :param replay_buffer_kwargs: extra keywords of the ``SequenceReplayBuffer``
@@ -214,7 +240,7 @@ class DSSLAC(OffPolicyAlgorithm):
         cost_loss_weight: float | None = None,
         cost_positive_weight: float | None = None,
         share_latent_batch: bool = False,
-        bf16: bool = False,
+        bf16: bool | str = False,
         compile_updates: bool = False,
         tf32: bool = True,
         replay_buffer_kwargs: dict[str, Any] | None = None,
@@ -369,7 +395,7 @@ class DSSLAC(OffPolicyAlgorithm):
     @property
     def lagrange_multiplier(self) -> float:
         """The current Lagrange multiplier (softplus of its raw parameter)."""
-        return softplus(float(self.lagrange_raw.item()))
+        return softplus(float(self.lagrange_raw.numpy()))
 
     def _convert_train_freq(self) -> None:
         """SB3's conversion, then a step frequency counted in agent steps over all envs becomes ``env.step`` calls."""
@@ -387,9 +413,7 @@ class DSSLAC(OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
-        if self.compile_updates:
-            self.policy.latent.posterior = th.compile(self.policy.latent.posterior)  # type: ignore[method-assign]
-            self.policy.cost_critic.compile()
+        self._bf16_active = resolve_bf16(self.bf16, self.device)
         self.lagrange_raw = th.tensor(inverse_softplus(self.lagrange_init), dtype=th.float64)
         if self.target_entropy == "auto":
             self.target_entropy = -float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
@@ -401,9 +425,41 @@ class DSSLAC(OffPolicyAlgorithm):
             if init_value <= 0.0:
                 raise ValueError(f"The initial entropy coefficient must be greater than 0, got {self.ent_coef}")
             self.log_ent_coef = th.log(th.full((1,), init_value, device=self.device)).requires_grad_(True)
-            self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1))
+            self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1), fused=True)
         else:
             self.ent_coef_tensor = th.tensor(float(self.ent_coef), device=self.device)
+        self._setup_update_state()
+
+    def _setup_update_state(self) -> None:
+        """The device tensors that a burst of updates reads and writes instead of host values, and the compiled step."""
+        policy = self.policy
+        optimizers = [policy.latent_optimizer, policy.actor_optimizer, policy.critic_optimizer, policy.cost_critic_optimizer]
+        if self.ent_coef_optimizer is not None:
+            optimizers.append(self.ent_coef_optimizer)
+        self._learning_rates = {optimizer: th.zeros((), device=self.device) for optimizer in optimizers}
+        self._lagrange_raw_device = th.zeros((), device=self.device)
+        self._first_nonfinite_update = th.full((len(self._GUARDED_LOSSES),), -1, dtype=th.long, device=self.device)
+        self._burst_update_index = th.zeros((), dtype=th.long, device=self.device)
+        self._target_params = [*policy.critic_target.parameters(), *policy.cost_critic_target.parameters()]
+        # The reference trains the IQN's cosine and quantile nets with two optimizers, each clipped at 40: clipped apart
+        self._cost_critic_clip_groups: tuple[slice, ...] = (slice(None),)
+        if isinstance(policy.cost_critic, IQNCostCritic):
+            n_cosine = len(list(policy.cost_critic.cosine_net.parameters()))
+            assert list(policy.cost_critic.parameters())[:n_cosine] == list(policy.cost_critic.cosine_net.parameters())
+            self._cost_critic_clip_groups = (slice(0, n_cosine), slice(n_cosine, None))
+        self._source_params = [*policy.critic.parameters(), *policy.cost_critic.parameters()]
+        self._compiled_gradient_step = None
+        self._compiled_once = False
+        if self.compile_updates:
+            if not hasattr(th._dynamo.config, "trace_autograd_ops"):
+                warnings.warn(
+                    f"compile_updates needs a torch whose compiler traces the backward pass (2.13 or newer), this is "
+                    f"{th.__version__}: the updates run eagerly"
+                )
+                return
+            # CUDA graphs on a GPU: the whole step is replayed as one graph
+            mode = "reduce-overhead" if self.device.type == "cuda" else None
+            self._compiled_gradient_step = th.compile(self._gradient_step, fullgraph=True, mode=mode)
 
     # ----------------------------------------------------------------------------------------------------------------
     # Acting
@@ -496,13 +552,29 @@ class DSSLAC(OffPolicyAlgorithm):
     # Learning
     # ----------------------------------------------------------------------------------------------------------------
 
-    def _check_finite(self, name: str, loss: th.Tensor) -> None:
-        """Stop before an optimizer step would spread a NaN or inf into the weights."""
-        if not bool(th.isfinite(loss).all()):
+    # Losses checked for NaN/inf on the device during a burst, in this order (see ``_raise_if_not_finite``)
+    _GUARDED_LOSSES = ("latent_loss", "critic_loss", "cost_critic_loss", "actor_loss", "ent_coef_loss")
+
+    def _record_finite(self, name: str, loss: th.Tensor) -> None:
+        """
+        Note on the device, without reading it, the first update of this burst whose ``name`` loss is NaN or inf; the
+        burst reads the notes once, at its end (``_raise_if_not_finite``).
+        """
+        index = self._GUARDED_LOSSES.index(name)
+        first = self._first_nonfinite_update[index]
+        first.copy_(th.where((first < 0) & ~th.isfinite(loss.detach()), self._burst_update_index, first))
+
+    def _raise_if_not_finite(self, first_nonfinite: np.ndarray) -> None:
+        """Stop training, naming the loss and the update, when a burst noted a NaN or inf loss."""
+        # The earliest update, and in it the first loss computed (the others follow from it)
+        bad = [(int(update), index) for index, update in enumerate(first_nonfinite) if update >= 0]
+        if bad:
+            update, index = min(bad)
+            name = self._GUARDED_LOSSES[index]
             raise RuntimeError(
-                f"DS-SLAC's {name} became {loss.item()} at update {self._n_updates} (timestep {self.num_timesteps}); "
-                "training stopped before the weights were corrupted. Check the env's observations, rewards and costs "
-                "for NaN/inf, or lower the learning rates."
+                f"DS-SLAC's {name} became NaN or inf at update {self._n_updates + update} (timestep {self.num_timesteps}); "
+                "training stopped at the end of that burst of updates, so the weights may hold NaN: go back to the last "
+                "checkpoint. Check the env's observations, rewards and costs for NaN/inf, or lower the learning rates."
             )
 
     def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
@@ -523,10 +595,34 @@ class DSSLAC(OffPolicyAlgorithm):
         update_learning_rate(self.policy.latent_optimizer, latent_learning_rate)
 
     def _latent_autocast(self) -> contextlib.AbstractContextManager:
-        """bfloat16 autocast for the latent model's passes when ``bf16`` is set, else nothing."""
-        if self.bf16:
+        """bfloat16 autocast for the latent model's passes when bfloat16 is on (``bf16``), else nothing."""
+        if self._bf16_active:
             return th.autocast(self.device.type, dtype=th.bfloat16)
         return contextlib.nullcontext()
+
+    def _begin_burst(self) -> None:
+        """Bring the device copies of the step sizes and the multiplier up to date and clear the NaN notes."""
+        for optimizer, learning_rate in self._learning_rates.items():
+            learning_rate.fill_(optimizer.param_groups[0]["lr"])
+            if self._compiled_gradient_step is not None:
+                init_adam_state(optimizer)
+        self._lagrange_raw_device.copy_(self.lagrange_raw)
+        self._first_nonfinite_update.fill_(-1)
+        self._burst_update_index.zero_()
+
+    def _end_burst(self, history: dict[str, list[th.Tensor]]) -> dict[str, float]:
+        """
+        The one host read of a burst: the mean of each logged statistic, the NaN notes and, for the "critic" rule, the
+        multiplier. Raises if a loss became NaN or inf.
+        """
+        means = [th.stack(values).float().mean() for values in history.values()]
+        packed = th.cat([th.stack(means), self._first_nonfinite_update.float(), self._lagrange_raw_device.view(1).float()])
+        values = packed.cpu().numpy().astype(np.float64)
+        n_stats = len(means)
+        self._raise_if_not_finite(values[n_stats : n_stats + len(self._GUARDED_LOSSES)])
+        if self.lagrange == "critic":
+            self.lagrange_raw.fill_(values[-1])
+        return dict(zip(history, values[:n_stats].tolist(), strict=True))
 
     def _pretrain_latent(self) -> None:
         """
@@ -534,13 +630,18 @@ class DSSLAC(OffPolicyAlgorithm):
         standardisation of vector observations from that data.
         """
         self.policy.set_observation_statistics(self.replay_buffer.stored_observations())
-        losses = []
+        losses: list[th.Tensor] = []
         progress = tqdm(total=self.latent_pretrain_steps, desc="latent pre-training", disable=self.verbose < 1)
         for done in range(0, self.latent_pretrain_steps, self._PRETRAIN_BURST):
             n_updates = min(self._PRETRAIN_BURST, self.latent_pretrain_steps - done)
             indices = self.replay_buffer.sample_indices(n_updates, self.latent_batch_size)
+            self._begin_burst()
+            history = defaultdict(list)
             for k in range(n_updates):
-                losses.append(self._latent_update(self.replay_buffer.gather(indices[k]))["latent_loss"])
+                history["latent_loss"].append(self._latent_update(self.replay_buffer.gather(indices[k]))["latent_loss"])
+                self._burst_update_index.add_(1)
+            losses = [*losses, *history["latent_loss"]][-100:]
+            self._end_burst(history)
             progress.update(n_updates)
         progress.close()
         self.latent_pretrained = True
@@ -557,42 +658,58 @@ class DSSLAC(OffPolicyAlgorithm):
             loss, parts = self.policy.latent.loss(
                 observations, batch.actions, batch.rewards, batch.costs, batch.terminated, features=features
             )
-        self._check_finite("latent_loss", loss)
-        self.policy.latent_optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        th.nn.utils.clip_grad_norm_(self.policy.latent.parameters(), self.max_grad_norm)
-        self.policy.latent_optimizer.step()
+        self._record_finite("latent_loss", loss)
+        self._step(self.policy.latent_optimizer, loss, self.max_grad_norm)
         return {"latent_loss": loss.detach(), **parts}
 
-    def _update(self, indices: th.Tensor, batch_size: int) -> dict[str, th.Tensor]:
+    def _step(
+        self,
+        optimizer: th.optim.Optimizer,
+        loss: th.Tensor,
+        max_grad_norm: float,
+        clip_groups: tuple[slice, ...] = (slice(None),),
+    ) -> None:
         """
-        One gradient step of Algorithm 1: a latent-model update, then an actor-critic update.
+        Gradients of ``loss`` for the optimizer's parameters only, each group of them (``clip_groups``: slices of the
+        optimizer's parameter list) clipped to ``max_grad_norm`` on its own, then an Adam step.
+        """
+        params = optimizer.param_groups[0]["params"]
+        grads = list(th.autograd.grad(loss, params, materialize_grads=True))
+        for group in clip_groups:
+            grads[group] = clip_grads(grads[group], max_grad_norm)
+        adam_step(optimizer, grads, self._learning_rates[optimizer])
 
-        :param indices: windows from ``SequenceReplayBuffer.sample_indices``: ``latent_batch_size + batch_size`` of them
-            (two independent batches), or ``max(latent_batch_size, batch_size)`` with ``share_latent_batch``
+    def _gradient_step(self, batch: SequenceBatch) -> dict[str, th.Tensor]:
+        """
+        One gradient step of Algorithm 1, on the device and free of host syncs: a latent-model update, then an
+        actor-critic update (``compile_updates`` compiles this whole method).
+
+        :param batch: the sampled windows: ``latent_batch_size + batch_size`` of them (two independent batches), or
+            ``max(latent_batch_size, batch_size)`` with ``share_latent_batch``
+        :return: the detached statistics of the step
         """
         latent = self.policy.latent
-        if not self.share_latent_batch:
-            stats = self._latent_update(self.replay_buffer.gather(indices[: self.latent_batch_size]))
-            batch = self.replay_buffer.gather(indices[self.latent_batch_size :])
-            with th.no_grad(), self._latent_autocast():
-                latents = latent.sample_latents(self.policy.preprocess(batch.observations), batch.actions)
-            return {**stats, **self._actor_critic_update(batch, latents.float())}
-
-        batch = self.replay_buffer.gather(indices)
-        n_latent = self.latent_batch_size
-        with self._latent_autocast():
-            observations = self.policy.preprocess(batch.observations)
-            latent_features = latent.encode(observations[:n_latent])
-            with th.no_grad():
-                features = latent_features.detach()
-                if batch_size > n_latent:
-                    features = th.cat([features, latent.encode(observations[n_latent:batch_size])])
-                latents = latent.latents_from_features(features[:batch_size], batch.actions[:batch_size])
+        n_latent, batch_size = self.latent_batch_size, self.batch_size
         latent_batch = SequenceBatch(*(field[:n_latent] for field in batch))
-        stats = self._latent_update(latent_batch, features=latent_features)
-        ac_batch = SequenceBatch(*(field[:batch_size] for field in batch))
-        return {**stats, **self._actor_critic_update(ac_batch, latents.float())}
+        if not self.share_latent_batch:
+            stats = self._latent_update(latent_batch)
+            ac_batch = SequenceBatch(*(field[n_latent:] for field in batch))
+            with th.no_grad(), self._latent_autocast():
+                latents = latent.sample_latents(self.policy.preprocess(ac_batch.observations), ac_batch.actions)
+        else:
+            ac_batch = SequenceBatch(*(field[:batch_size] for field in batch))
+            with self._latent_autocast():
+                observations = self.policy.preprocess(batch.observations)
+                latent_features = latent.encode(observations[:n_latent])
+                with th.no_grad():
+                    features = latent_features.detach()
+                    if batch_size > n_latent:
+                        features = th.cat([features, latent.encode(observations[n_latent:batch_size])])
+                    latents = latent.latents_from_features(features[:batch_size], ac_batch.actions)
+            stats = self._latent_update(latent_batch, features=latent_features)
+        stats.update(self._actor_critic_update(ac_batch, latents.float()))
+        self._burst_update_index.add_(1)
+        return stats
 
     @th.no_grad()
     def _td_targets(
@@ -614,7 +731,7 @@ class DSSLAC(OffPolicyAlgorithm):
         next_z = latents[:, -1]
         not_terminated = 1.0 - batch.terminated[:, -1:]
         next_actions, next_log_prob = policy.actor.action_log_prob(next_z)
-        next_q = th.min(*policy.critic_target(next_z, next_actions)) - ent_coef * next_log_prob.unsqueeze(-1)
+        next_q = policy.critic_target(next_z, next_actions).amin(dim=0) - ent_coef * next_log_prob.unsqueeze(-1)
         target_q = batch.rewards[:, -1:] + not_terminated * self.gamma * next_q
         next_quantiles = policy.cost_critic_target(next_z, next_actions, target_taus)
         target_quantiles = batch.costs[:, -1:] + not_terminated * self.cost_gamma * next_quantiles
@@ -623,7 +740,7 @@ class DSSLAC(OffPolicyAlgorithm):
     def _actor_critic_update(self, batch: SequenceBatch, latents: th.Tensor) -> dict[str, th.Tensor]:
         """
         One update of the reward critic, the cost critic, the actor and the entropy coefficient on the last transition
-        of each sequence.
+        of each sequence, then of the target critics.
 
         :param batch: the sequences (B, L+1 frames)
         :param latents: their posterior samples (B, L+1, z_dim), no gradient
@@ -633,46 +750,34 @@ class DSSLAC(OffPolicyAlgorithm):
         z = latents[:, -2]
         actions = batch.actions[:, -1]
         ent_coef = th.exp(self.log_ent_coef.detach()) if self.ent_coef_optimizer is not None else self.ent_coef_tensor
-        multiplier = self.lagrange_multiplier
+        multiplier = F.softplus(self._lagrange_raw_device)
 
-        target_taus = sample_taus(n, self.n_quantiles, self.device)
-        target_q, target_quantiles = self._td_targets(batch, latents, ent_coef, target_taus)
+        with th.no_grad():
+            target_taus = sample_taus(n, self.n_quantiles, self.device)
+            target_q, target_quantiles = self._td_targets(batch, latents, ent_coef, target_taus)
 
-        q1, q2 = policy.critic(z, actions)
-        critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
-        self._check_finite("critic_loss", critic_loss)
-        policy.critic_optimizer.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        th.nn.utils.clip_grad_norm_(policy.critic.parameters(), self.max_grad_norm)
-        policy.critic_optimizer.step()
+        q_values = policy.critic(z, actions)  # (2, B, 1)
+        critic_loss = (q_values - target_q).pow(2).mean(dim=(1, 2)).sum()  # MSE of each network, summed
+        self._record_finite("critic_loss", critic_loss)
+        self._step(policy.critic_optimizer, critic_loss, self.max_grad_norm)
 
         taus = sample_taus(n, self.n_quantiles, self.device)
         current_quantiles = policy.cost_critic(z, actions, taus)
         if self.cost_critic == "mean":
             cost_critic_loss = F.mse_loss(current_quantiles[:, :1], target_quantiles[:, :1])
         else:
-            cost_critic_loss = quantile_huber_loss(current_quantiles, target_quantiles, taus)
-        self._check_finite("cost_critic_loss", cost_critic_loss)
-        policy.cost_critic_optimizer.zero_grad(set_to_none=True)
-        cost_critic_loss.backward()
-        self._clip_cost_critic_gradients()
-        policy.cost_critic_optimizer.step()
+            cost_critic_loss = quantile_huber_loss(current_quantiles, target_quantiles, cum_prob=taus.unsqueeze(-1))
+        self._record_finite("cost_critic_loss", cost_critic_loss)
+        self._step(policy.cost_critic_optimizer, cost_critic_loss, self.max_grad_norm, self._cost_critic_clip_groups)
 
-        # The actor's loss must not fill the critics' gradients
-        policy.critic.requires_grad_(False)
-        policy.cost_critic.requires_grad_(False)
+        # The actor's gradients are taken for its own parameters only: the critics' weights get none
         pi_actions, log_prob = policy.actor.action_log_prob(z)
-        q_pi = th.min(*policy.critic(z, pi_actions))
+        q_pi = policy.critic(z, pi_actions).amin(dim=0)
         actor_taus = sample_taus(n, self.n_quantiles, self.device, risk_level=self.cvar_risk_level)
         cost_value = policy.cost_critic(z, pi_actions, actor_taus).mean(dim=1, keepdim=True)
         actor_loss = (ent_coef * log_prob.unsqueeze(-1) - q_pi + multiplier * cost_value).mean()
-        policy.critic.requires_grad_(True)
-        policy.cost_critic.requires_grad_(True)
-        self._check_finite("actor_loss", actor_loss)
-        policy.actor_optimizer.zero_grad(set_to_none=True)
-        actor_loss.backward()
-        th.nn.utils.clip_grad_norm_(policy.actor.parameters(), self.actor_max_grad_norm)
-        policy.actor_optimizer.step()
+        self._record_finite("actor_loss", actor_loss)
+        self._step(policy.actor_optimizer, actor_loss, self.actor_max_grad_norm)
 
         stats = {
             "critic_loss": critic_loss.detach(),
@@ -688,49 +793,29 @@ class DSSLAC(OffPolicyAlgorithm):
         else:
             stats["cost_value"] = stats["cost_cvar"]
         if self.lagrange == "critic":
-            raw = sgd_lagrange_step(
-                float(self.lagrange_raw.item()),
-                float(stats["cost_cvar"]),
-                self.critic_cost_budget,
-                self.current_lagrange_learning_rate,
-            )
-            self.lagrange_raw.fill_(raw)
+            with th.no_grad():
+                raw = sgd_lagrange_step_on_device(
+                    self._lagrange_raw_device, stats["cost_cvar"], self.critic_cost_budget, self.current_lagrange_learning_rate
+                )
+                self._lagrange_raw_device.copy_(raw)
         if self.ent_coef_optimizer is not None:
             ent_coef_loss = -(self.log_ent_coef * (log_prob.detach() + self.target_entropy)).mean()
-            self._check_finite("ent_coef_loss", ent_coef_loss)
-            self.ent_coef_optimizer.zero_grad(set_to_none=True)
-            ent_coef_loss.backward()
-            th.nn.utils.clip_grad_norm_([self.log_ent_coef], self.max_grad_norm)
-            self.ent_coef_optimizer.step()
+            self._record_finite("ent_coef_loss", ent_coef_loss)
+            self._step(self.ent_coef_optimizer, ent_coef_loss, self.max_grad_norm)
             stats["ent_coef_loss"] = ent_coef_loss.detach()
 
         self._update_targets()
         return stats
 
-    def _clip_cost_critic_gradients(self) -> None:
-        """
-        Clip the cost critic's gradient norm at ``max_grad_norm``: the IQN's cosine and quantile nets each on its own
-        (the reference trains them with two optimizers, each clipped at 40), the mean critic as a whole.
-        """
-        cost_critic = self.policy.cost_critic
-        if isinstance(cost_critic, IQNCostCritic):
-            groups = [cost_critic.cosine_net.parameters(), cost_critic.quantile_net.parameters()]
-        else:
-            groups = [cost_critic.parameters()]
-        for parameters in groups:
-            th.nn.utils.clip_grad_norm_(parameters, self.max_grad_norm)
-
     def _update_targets(self) -> None:
         """Polyak update of both target critics, ``target += tau * (source - target)``, in one fused call."""
-        policy = self.policy
-        targets = [*policy.critic_target.parameters(), *policy.cost_critic_target.parameters()]
-        sources = [*policy.critic.parameters(), *policy.cost_critic.parameters()]
-        th._foreach_lerp_(targets, sources, self.tau)
+        with th.no_grad():
+            th._foreach_lerp_(self._target_params, self._source_params, self.tau)
 
     def train(self, gradient_steps: int, batch_size: int) -> None:
         """
-        ``gradient_steps`` updates, each one latent-model update and one actor-critic update (Algorithm 1).
-        The first call runs the latent pre-training once.
+        ``gradient_steps`` updates, each one latent-model update and one actor-critic update (Algorithm 1), with one
+        host read for the whole burst. The first call runs the latent pre-training once.
         """
         self.policy.set_training_mode(True)
         optimizers = [self.policy.actor_optimizer, self.policy.critic_optimizer, self.policy.cost_critic_optimizer]
@@ -741,21 +826,39 @@ class DSSLAC(OffPolicyAlgorithm):
         if not self.latent_pretrained:
             self._pretrain_latent()
 
-        history: dict[str, list[th.Tensor]] = defaultdict(list)
         if self.share_latent_batch:
             windows_per_update = max(self.latent_batch_size, batch_size)
         else:
             windows_per_update = self.latent_batch_size + batch_size
         indices = self.replay_buffer.sample_indices(gradient_steps, windows_per_update)
+        self._begin_burst()
+        history: dict[str, list[th.Tensor]] = defaultdict(list)
         for k in range(gradient_steps):
-            for key, value in self._update(indices[k], batch_size).items():
+            for key, value in self._run_gradient_step(self.replay_buffer.gather(indices[k])).items():
                 history[key].append(value)
+        means = self._end_burst(history)
         self._n_updates += gradient_steps
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/lagrange_multiplier", self.lagrange_multiplier)
-        for key, values in history.items():
-            self.logger.record(f"train/{key}", float(th.stack(values).mean()))
+        for key, value in means.items():
+            self.logger.record(f"train/{key}", value)
+
+    def _run_gradient_step(self, batch: SequenceBatch) -> dict[str, th.Tensor]:
+        """``_gradient_step``, compiled with ``compile_updates`` (falling back to eager, with a warning, if that fails)."""
+        if self._compiled_gradient_step is None:
+            return self._gradient_step(batch)
+        try:
+            with th._dynamo.config.patch(trace_autograd_ops=True):
+                return self._compiled_gradient_step(batch)
+        except Exception as error:  # the compiler's errors have no common base class
+            if self._compiled_once:
+                raise
+            warnings.warn(f"compile_updates: the update could not be compiled ({type(error).__name__}: {error}); runs eagerly")
+            self._compiled_gradient_step = None
+            return self._gradient_step(batch)
+        finally:
+            self._compiled_once = True
 
     def learn(
         self: SelfDSSLAC,
@@ -782,7 +885,23 @@ class DSSLAC(OffPolicyAlgorithm):
     # ----------------------------------------------------------------------------------------------------------------
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_last_filter_state", "_episode_costs", "ep_cost_buffer"]
+        return [
+            *super()._excluded_save_params(),
+            "_last_filter_state",
+            "_episode_costs",
+            "ep_cost_buffer",
+            # rebuilt by _setup_model
+            "_bf16_active",
+            "_learning_rates",
+            "_lagrange_raw_device",
+            "_first_nonfinite_update",
+            "_burst_update_index",
+            "_target_params",
+            "_source_params",
+            "_cost_critic_clip_groups",
+            "_compiled_gradient_step",
+            "_compiled_once",
+        ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = [

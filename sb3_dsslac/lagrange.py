@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import torch as th
+from torch.nn import functional as F
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_dsslac.env_info import cost_from_info
@@ -39,6 +40,17 @@ def sgd_lagrange_step(raw: float, cost: float, budget_per_step: float, learning_
     multiplier = softplus(raw)
     sigmoid = 1.0 / (1.0 + math.exp(-raw)) if raw >= 0 else math.exp(raw) / (1.0 + math.exp(raw))
     return raw + learning_rate * sigmoid / multiplier * (cost - budget_per_step)
+
+
+def sgd_lagrange_step_on_device(raw: th.Tensor, cost: th.Tensor, budget_per_step: float, learning_rate: float) -> th.Tensor:
+    """
+    ``sgd_lagrange_step`` in tensor ops (no host read), for the rule that steps inside a burst of updates.
+
+    :param raw: the raw parameter (0-d tensor)
+    :param cost: the cost estimate (0-d tensor)
+    :return: the new raw parameter (0-d tensor)
+    """
+    return raw + learning_rate * th.sigmoid(raw) / F.softplus(raw) * (cost - budget_per_step)
 
 
 def pid_lagrange_step(

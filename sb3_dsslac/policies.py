@@ -6,12 +6,13 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.preprocessing import preprocess_obs
+from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 
 from sb3_dsslac.actor import LatentActor
 from sb3_dsslac.critics import IQNCostCritic, MeanCostCritic, TwinQCritic
 from sb3_dsslac.latent import LatentModel
+from sb3_dsslac.optim import fast_adam_kwargs
 
 # Filter state carried through ``predict``: (z2 (n_envs, z2_dim), previous action scaled to [-1, 1] (n_envs, action_dim))
 FilterState = tuple[np.ndarray, np.ndarray]
@@ -45,7 +46,8 @@ class LatentPolicy(BasePolicy):
         ``set_observation_statistics``; saved with the policy). Without it, the fixed-variance likelihood lets large
         dimensions (an accelerometer's 9.81) drown small informative ones (lidar in [0, 1])
     :param optimizer_class: optimizer of every network
-    :param optimizer_kwargs: extra optimizer keywords
+    :param optimizer_kwargs: extra optimizer keywords (Adam and AdamW get ``fused=True`` unless ``fused`` or ``foreach``
+        is given)
     """
 
     latent: LatentModel
@@ -100,6 +102,7 @@ class LatentPolicy(BasePolicy):
         self.cost_positive_weight = cost_positive_weight
         self.latent_learning_rate = latent_learning_rate
         self.normalize_vectors = normalize_vectors
+        self._scale_images = normalize_images and is_image_space(observation_space)
         vector_shape = self.observation_space.shape if len(self.observation_space.shape) == 1 else (0,)  # type: ignore[arg-type]
         self.register_buffer("observation_mean", th.zeros(vector_shape))
         self.register_buffer("observation_std", th.ones(vector_shape))
@@ -130,14 +133,12 @@ class LatentPolicy(BasePolicy):
             target.requires_grad_(False)
             target.train(False)
 
-        self.latent_optimizer = self.optimizer_class(
-            self.latent.parameters(), lr=self.latent_learning_rate, **self.optimizer_kwargs
-        )
-        self.actor_optimizer = self.optimizer_class(self.actor.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
-        self.critic_optimizer = self.optimizer_class(self.critic.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
-        self.cost_critic_optimizer = self.optimizer_class(
-            self.cost_critic.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
-        )
+        optimizer_kwargs = fast_adam_kwargs(self.optimizer_class, self.optimizer_kwargs)
+        latent_lr = self.latent_learning_rate
+        self.latent_optimizer = self.optimizer_class(self.latent.parameters(), lr=latent_lr, **optimizer_kwargs)
+        self.actor_optimizer = self.optimizer_class(self.actor.parameters(), lr=lr_schedule(1), **optimizer_kwargs)
+        self.critic_optimizer = self.optimizer_class(self.critic.parameters(), lr=lr_schedule(1), **optimizer_kwargs)
+        self.cost_critic_optimizer = self.optimizer_class(self.cost_critic.parameters(), lr=lr_schedule(1), **optimizer_kwargs)
 
     def _make_cost_critic(self, z_dim: int, action_dim: int) -> IQNCostCritic | MeanCostCritic:
         if self.cost_critic_type == "mean":
@@ -171,13 +172,13 @@ class LatentPolicy(BasePolicy):
     def preprocess(self, observations: th.Tensor) -> th.Tensor:
         """
         Raw observations (any leading dims, as stored) to floats: uint8 images scaled to [0, 1], vectors standardised
-        (identity until ``set_observation_statistics``).
+        (identity until ``set_observation_statistics``). Decided at construction, so that it compiles without branches.
         """
-        preprocessed = preprocess_obs(observations, self.observation_space, normalize_images=self.normalize_images)
-        assert isinstance(preprocessed, th.Tensor)
+        if self._scale_images:
+            return observations.float() / 255.0
         if self.observation_mean.numel() > 0:
-            return (preprocessed - self.observation_mean) / self.observation_std
-        return preprocessed
+            return (observations.float() - self.observation_mean) / self.observation_std
+        return observations.float()
 
     def set_observation_statistics(self, observations: np.ndarray, min_std: float = 1e-2) -> None:
         """

@@ -9,6 +9,8 @@ import torch as th
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_dsslac import DSSLAC
+from sb3_dsslac import dsslac as dsslac_module
+from sb3_dsslac.dispatch import DispatchCounter, optimizer_step_tensors
 from sb3_dsslac.latent import LatentModel
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import SMALL, small_model
@@ -80,8 +82,10 @@ def warmed_up_pair(**fast: object) -> tuple[DSSLAC, DSSLAC]:
 
 
 def seeded_updates(model: DSSLAC, indices: th.Tensor, n_updates: int = 2) -> list[dict[str, th.Tensor]]:
+    """``n_updates`` gradient steps of one burst on the windows ``indices[k]``, from the same random seed."""
     th.manual_seed(11)
-    return [model._update(indices[k], model.batch_size) for k in range(n_updates)]
+    model._begin_burst()
+    return [model._run_gradient_step(model.replay_buffer.gather(indices[k])) for k in range(n_updates)]
 
 
 def test_compiled_update_matches_eager(monkeypatch) -> None:
@@ -95,7 +99,8 @@ def test_compiled_update_matches_eager(monkeypatch) -> None:
             th.testing.assert_close(compiled_stats[key], eager_stats[key], rtol=1e-4, atol=1e-4, msg=key)
 
 
-def test_bf16_update_losses_are_within_one_percent_of_fp32() -> None:
+def test_bf16_update_losses_are_within_one_percent_of_fp32(monkeypatch) -> None:
+    monkeypatch.setattr(dsslac_module, "has_native_bf16", lambda device: True)  # emulated bfloat16 computes the same
     fp32, bf16 = warmed_up_pair(bf16=True)
     indices = fp32.replay_buffer.sample_indices(1, fp32.latent_batch_size + fp32.batch_size)
     (reference,), (stats,) = seeded_updates(fp32, indices, 1), seeded_updates(bf16, indices, 1)
@@ -131,12 +136,31 @@ def test_fused_polyak_update_follows_the_formula() -> None:
     model = small_model(HazardPointEnv())
     model.learn(60)
     policy = model.policy
-    th.nn.init.normal_(policy.critic_target.q1[0].weight)  # make target and source differ
-    before = policy.critic_target.q1[0].weight.detach().clone()
+    th.nn.init.normal_(policy.critic_target.weights[0])  # make target and source differ
+    before = policy.critic_target.weights[0].detach().clone()
     indices = model.replay_buffer.sample_indices(1, model.latent_batch_size + model.batch_size)
-    model._update(indices[0], model.batch_size)
-    expected = (1.0 - model.tau) * before + model.tau * policy.critic.q1[0].weight.detach()
-    th.testing.assert_close(policy.critic_target.q1[0].weight, expected)
+    seeded_updates(model, indices, 1)
+    expected = (1.0 - model.tau) * before + model.tau * policy.critic.weights[0].detach()
+    th.testing.assert_close(policy.critic_target.weights[0], expected)
+
+
+def test_target_critics_stay_out_of_autograd() -> None:
+    # A Polyak update under autograd gave every target parameter a grad_fn, a chain growing by 18 nodes per update
+    model = small_model(HazardPointEnv())
+    model.learn(80)
+    assert model._n_updates > 0
+    for target in (model.policy.critic_target, model.policy.cost_critic_target):
+        for param in target.parameters():
+            assert param.grad_fn is None and not param.requires_grad
+
+
+def test_a_burst_reads_the_host_at_most_once() -> None:
+    model = small_model(HazardPointEnv(obs_type="pixels"), learning_starts=10_000)
+    model.learn(60)
+    model.latent_pretrained = True
+    with DispatchCounter(ignore_sync_of=optimizer_step_tensors(model)) as counter:
+        model.train(gradient_steps=10, batch_size=model.batch_size)
+    assert counter.syncs <= 1
 
 
 def test_several_envs_keep_one_update_per_agent_step() -> None:
@@ -154,6 +178,18 @@ def test_train_freq_not_a_multiple_of_n_envs_warns() -> None:
     with pytest.warns(UserWarning, match="not a multiple of n_envs=3"):
         model = DSSLAC("LatentPolicy", env, **{**SMALL, "train_freq": 10})
     assert model.train_freq.frequency == 4
+
+
+def test_bf16_without_native_support_warns_and_keeps_float32(monkeypatch) -> None:
+    monkeypatch.setattr(dsslac_module, "has_native_bf16", lambda device: False)
+    with pytest.warns(UserWarning, match="no native bfloat16"):
+        model = small_model(HazardPointEnv(), bf16=True)
+    assert not model._bf16_active
+    assert not small_model(HazardPointEnv(), bf16="auto")._bf16_active
+    monkeypatch.setattr(dsslac_module, "has_native_bf16", lambda device: True)
+    assert small_model(HazardPointEnv(), bf16="auto")._bf16_active
+    with pytest.raises(ValueError, match="bf16"):
+        small_model(HazardPointEnv(), bf16="yes")
 
 
 def test_fast_keywords_train_save_and_load(tmp_path) -> None:

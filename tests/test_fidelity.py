@@ -77,8 +77,12 @@ def test_multiplier_steps_with_the_decayed_step_size(rule: str, monkeypatch) -> 
         rates.append(learning_rate)
         return original(raw, cost, budget, learning_rate)
 
+    def device_spy(raw: th.Tensor, cost: th.Tensor, budget: float, learning_rate: float) -> th.Tensor:
+        rates.append(learning_rate)
+        return lagrange.sgd_lagrange_step_on_device(raw, cost, budget, learning_rate)
+
     monkeypatch.setattr("sb3_dsslac.lagrange.sgd_lagrange_step", spy)
-    monkeypatch.setattr("sb3_dsslac.dsslac.sgd_lagrange_step", spy)
+    monkeypatch.setattr("sb3_dsslac.dsslac.sgd_lagrange_step_on_device", device_spy)  # the "critic" rule
     model = small_model(HazardPointEnv(), lagrange=rule, lr_decay_milestone=50, lr_decay_factor=0.25)
     model.learn(80)
     assert rates and set(rates) <= {2e-4, 0.25 * 2e-4}
@@ -216,8 +220,9 @@ def test_table_5_2_defaults() -> None:
 class FakeTwinQ(nn.Module):
     """Q1 = 10 z_0 + a_0, Q2 = 10 z_0 + 5: the min picks Q1 for small actions."""
 
-    def forward(self, z: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        return 10 * z[:, :1] + actions[:, :1], 10 * z[:, :1] + 5
+    def forward(self, z: th.Tensor, actions: th.Tensor) -> th.Tensor:
+        """Both networks stacked (2, B, 1), as ``TwinQCritic``."""
+        return th.stack([10 * z[:, :1] + actions[:, :1], 10 * z[:, :1] + 5])
 
 
 class FakeQuantiles(nn.Module):
@@ -312,7 +317,9 @@ def test_cvar_taus_reach_only_the_actor(monkeypatch) -> None:
     loss_taus, target_taus, critic_taus = [], [], []
     original_loss, original_targets = dsslac_module.quantile_huber_loss, model._td_targets
     monkeypatch.setattr(
-        dsslac_module, "quantile_huber_loss", lambda c, t, taus: loss_taus.append(taus) or original_loss(c, t, taus)
+        dsslac_module,
+        "quantile_huber_loss",
+        lambda c, t, cum_prob: loss_taus.append(cum_prob.squeeze(-1)) or original_loss(c, t, cum_prob=cum_prob),
     )
     monkeypatch.setattr(
         model, "_td_targets", lambda b, z, e, taus: target_taus.append(taus) or original_targets(b, z, e, taus)
@@ -358,26 +365,29 @@ def test_the_actor_loss_leaves_the_critics_alone(monkeypatch) -> None:
 # ----------------------------------------------------------------------------------------------------------------------
 
 
-def test_iqn_cosine_and_quantile_nets_are_clipped_each() -> None:
+def clipped_cost_critic_grads(model: DSSLAC, scale_of, monkeypatch) -> list[th.Tensor]:
+    """The cost critic's gradients as its Adam step gets them, for a loss whose gradient is ``scale_of(i)`` on param i."""
+    optimizer = model.policy.cost_critic_optimizer
+    params = optimizer.param_groups[0]["params"]
+    loss = sum(param.sum() * scale_of(index) for index, param in enumerate(params))
+    seen: list[list[th.Tensor]] = []
+    monkeypatch.setattr(dsslac_module, "adam_step", lambda optimizer, grads, learning_rate: seen.append(grads))
+    model._step(optimizer, loss, model.max_grad_norm, model._cost_critic_clip_groups)
+    return seen[0]
+
+
+def test_iqn_cosine_and_quantile_nets_are_clipped_each(monkeypatch) -> None:
     model = small_model(HazardPointEnv())
-    cost_critic = model.policy.cost_critic
-    for parameter in cost_critic.cosine_net.parameters():
-        parameter.grad = th.full_like(parameter, 1e-3)  # a small norm, far under 40
-    for parameter in cost_critic.quantile_net.parameters():
-        parameter.grad = th.full_like(parameter, 100.0)
-    cosine_grads = [p.grad.clone() for p in cost_critic.cosine_net.parameters()]
-    model._clip_cost_critic_gradients()
+    n_cosine = len(list(model.policy.cost_critic.cosine_net.parameters()))
+    # A small gradient on the cosine net (far under 40), a large one on the quantile net
+    grads = clipped_cost_critic_grads(model, lambda index: 1e-3 if index < n_cosine else 100.0, monkeypatch)
     # One joint clip would have shrunk the cosine net's gradient with the quantile net's
-    assert all(th.equal(p.grad, g) for p, g in zip(cost_critic.cosine_net.parameters(), cosine_grads, strict=True))
-    norm = th.nn.utils.get_total_norm([p.grad for p in cost_critic.quantile_net.parameters()])
-    assert norm.item() == pytest.approx(40.0, rel=1e-4)
+    assert all(th.allclose(grad, th.full_like(grad, 1e-3)) for grad in grads[:n_cosine])
+    assert th.nn.utils.get_total_norm(grads[n_cosine:]).item() == pytest.approx(40.0, rel=1e-4)
 
     mean = small_model(HazardPointEnv(), cost_critic="mean")
-    for parameter in mean.policy.cost_critic.parameters():
-        parameter.grad = th.full_like(parameter, 100.0)
-    mean._clip_cost_critic_gradients()
-    norm = th.nn.utils.get_total_norm([p.grad for p in mean.policy.cost_critic.parameters()])
-    assert norm.item() == pytest.approx(40.0, rel=1e-4)
+    grads = clipped_cost_critic_grads(mean, lambda index: 100.0, monkeypatch)
+    assert th.nn.utils.get_total_norm(grads).item() == pytest.approx(40.0, rel=1e-4)
 
 
 def test_tf32_scope_restores_the_process_settings() -> None:
@@ -418,8 +428,10 @@ def test_critic_rule_budget_is_the_infinite_horizon_value(monkeypatch) -> None:
     assert model.critic_cost_budget == pytest.approx(10.0)
     assert model.discounted_cost_budget == pytest.approx(9.184, abs=1e-3)  # still the mean critic's initial bias
     budgets = []
-    original = dsslac_module.sgd_lagrange_step
-    monkeypatch.setattr(dsslac_module, "sgd_lagrange_step", lambda r, c, b, lr: budgets.append(b) or original(r, c, b, lr))
+    original = dsslac_module.sgd_lagrange_step_on_device
+    monkeypatch.setattr(
+        dsslac_module, "sgd_lagrange_step_on_device", lambda r, c, b, lr: budgets.append(b) or original(r, c, b, lr)
+    )
     model.learn(50)
     assert budgets and budgets == pytest.approx([10.0] * len(budgets))
 
