@@ -2,6 +2,7 @@
 modules, bfloat16 autocast, one shared batch, fused Polyak updates and several envs per burst."""
 
 import copy
+import warnings
 
 import numpy as np
 import pytest
@@ -92,11 +93,36 @@ def test_compiled_update_matches_eager(monkeypatch) -> None:
     # Inductor draws its own random numbers unless told to use eager's generator
     monkeypatch.setattr(th._inductor.config, "fallback_random", True)
     eager, compiled = warmed_up_pair(compile_updates=True)
-    indices = eager.replay_buffer.sample_indices(2, eager.latent_batch_size + eager.batch_size)
-    for eager_stats, compiled_stats in zip(seeded_updates(eager, indices), seeded_updates(compiled, indices), strict=True):
-        assert eager_stats.keys() == compiled_stats.keys()
+    indices = eager.replay_buffer.sample_indices(3, eager.latent_batch_size + eager.batch_size)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="compile_updates")  # no silent fallback to eager
+        compiled_stats = seeded_updates(compiled, indices, 2)
+    assert compiled._compiled_gradient_step is not None
+    for eager_stats, stats in zip(seeded_updates(eager, indices, 2), compiled_stats, strict=True):
+        assert eager_stats.keys() == stats.keys()
         for key in eager_stats:
-            th.testing.assert_close(compiled_stats[key], eager_stats[key], rtol=1e-4, atol=1e-4, msg=key)
+            th.testing.assert_close(stats[key], eager_stats[key], rtol=1e-4, atol=1e-4, msg=key)
+    # The whole step is one graph: a few hundred ops where eager dispatches thousands, and no host read
+    batch = compiled.replay_buffer.gather(indices[2])
+    with DispatchCounter() as compiled_counter:
+        compiled._run_gradient_step(batch)
+    with DispatchCounter() as eager_counter:
+        eager._run_gradient_step(batch)
+    assert compiled_counter.ops < eager_counter.ops / 4 and compiled_counter.syncs == 0
+
+
+def test_compile_failure_falls_back_to_eager_with_a_warning(monkeypatch) -> None:
+    def broken_compile(function, **kwargs):
+        def fails(*args):
+            raise RuntimeError("no compiler here")
+
+        return fails
+
+    monkeypatch.setattr(th, "compile", broken_compile)
+    model = small_model(HazardPointEnv(), compile_updates=True)
+    with pytest.warns(UserWarning, match="could not be compiled.*no compiler here"):
+        model.learn(60)
+    assert model._compiled_gradient_step is None and model._n_updates > 0
 
 
 def test_bf16_update_losses_are_within_one_percent_of_fp32(monkeypatch) -> None:
