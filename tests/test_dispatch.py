@@ -5,7 +5,7 @@ import torch as th
 
 from sb3_dsslac.dispatch import DispatchCounter, optimizer_step_tensors
 from tests.synthetic_envs import HazardPointEnv
-from tests.test_dsslac import small_model
+from tests.test_dsslac import SMALL_POLICY, small_model
 
 
 def dispatch_modes_active() -> int:
@@ -83,7 +83,10 @@ def test_compiled_code_runs_compiled_inside_the_counter() -> None:
 
 def test_adams_step_reads_can_be_left_out_of_an_update() -> None:
     th.set_num_threads(1)
-    model = small_model(HazardPointEnv(obs_type="state"), learning_starts=40, latent_pretrain_steps=1, gradient_steps=1)
+    # Adam's for-loop implementation reads each step counter on the host (the default fused kernel does not)
+    policy_kwargs = {**SMALL_POLICY, "optimizer_kwargs": {"foreach": False}}
+    env = HazardPointEnv(obs_type="state")
+    model = small_model(env, learning_starts=40, latent_pretrain_steps=1, gradient_steps=1, policy_kwargs=policy_kwargs)
     model.learn(50)  # warm-up data, the pre-training and a first update: every optimizer has its state
     steps = optimizer_step_tensors(model)
     optimizers = [model.policy.latent_optimizer, model.policy.actor_optimizer, model.policy.critic_optimizer]
