@@ -34,7 +34,9 @@ from sb3_dsslac.presets import preset_hyperparams
 env = gym.make(args["env"], obs_type=args["obs_type"])
 hyperparams = preset_hyperparams(args["preset"], args["keywords"])
 fill = args["fill"]
-hyperparams.update(learning_starts=fill, latent_pretrain_steps=0, train_freq=10**9, buffer_size=max(fill, 2000))
+# One rollout of fill + 1 agent steps (a rollout runs its train_freq steps whatever learn's total), then one update
+hyperparams.update(learning_starts=fill, latent_pretrain_steps=0, train_freq=fill + 1, gradient_steps=1)
+hyperparams.update(buffer_size=max(fill, 2000))
 model = DSSLAC("LatentPolicy", env, seed=0, verbose=0, **hyperparams)
 model.learn(args["fill"] + 1)
 model.train(gradient_steps=args["warmup"], batch_size=model.batch_size)
