@@ -23,7 +23,7 @@ OUT_DIR=${OUT_DIR:-${OUT:-/tmp/gpu_check}}
 SITE=${SITE:-/tmp/gpu_check_site}
 PYTHON=${PYTHON:-python3}
 # What the CUDA image lacks (its python3 has torch, numpy, cloudpickle, tqdm, rich, pyyaml, pandas, matplotlib)
-PACKAGES=(stable_baselines3==2.9.2 gymnasium==1.4.0 farama-notifications==0.0.6 mujoco==4.0.0 mujoco-core==4.0.0
+PACKAGES=(stable_baselines3==2.9.2 sb3_contrib==2.9.2 gymnasium==1.4.0 farama-notifications==0.0.6 mujoco==4.0.0 mujoco-core==4.0.0
     mujoco-studio==4.0.0 websockets==15.0.1 glfw==2.11.0 pyopengl==3.1.10)
 
 if [[ "${1:-}" == "--fetch" ]]; then
