@@ -82,10 +82,16 @@ class LatentRollout(NamedTuple):
     z2: Tensor
 
 
-def _image_encoder(channels: int, size: int, feature_dim: int) -> nn.Sequential:
-    """Conv encoder (C, size, size) -> (feature_dim, 1, 1), ELU after every layer (output included)."""
-    # (out_channels, kernel, padding) of the stride-2 layers; 32x32 images drop the last one.
-    specs = ((32, 5, 2), (64, 3, 1), (128, 3, 1), (256, 3, 1))[: 4 if size == 64 else 3]
+# Output channels of the encoder's stride-2 convolutions in the published networks (the decoder mirrors them)
+THESIS_IMAGE_CHANNELS = (32, 64, 128, 256)
+
+
+def _image_encoder(channels: int, size: int, feature_dim: int, widths: tuple[int, ...]) -> nn.Sequential:
+    """
+    Conv encoder (C, size, size) -> (feature_dim, 1, 1), ELU after every layer (output included): stride-2 layers of
+    ``widths`` output channels (kernels 5, 3, 3, 3), then a 4x4 convolution; 32x32 images drop the last stride-2 layer.
+    """
+    specs = tuple(zip(widths, (5, 3, 3, 3), (2, 1, 1, 1), strict=True))[: 4 if size == 64 else 3]
     layers: list[nn.Module] = []
     in_ch = channels
     for out_ch, kernel, pad in specs:
@@ -95,14 +101,16 @@ def _image_encoder(channels: int, size: int, feature_dim: int) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-def _image_decoder(z_dim: int, channels: int, size: int) -> nn.Sequential:
-    """ConvTranspose decoder (z_dim, 1, 1) -> (C, size, size), LeakyReLU(0.2) after every layer (output included)."""
-    # 32x32 images drop the first stride-2 layer.
-    widths = (256, 128, 64, 32) if size == 64 else (128, 64, 32)
-    layers: list[nn.Module] = [nn.ConvTranspose2d(z_dim, widths[0], 4, stride=1, padding=0), nn.LeakyReLU(0.2)]
-    for in_ch, out_ch in itertools.pairwise(widths):
+def _image_decoder(z_dim: int, channels: int, size: int, widths: tuple[int, ...]) -> nn.Sequential:
+    """
+    ConvTranspose decoder (z_dim, 1, 1) -> (C, size, size), LeakyReLU(0.2) after every layer (output included): the
+    encoder's ``widths`` in reverse; 32x32 images drop the first stride-2 layer.
+    """
+    mirrored = tuple(reversed(widths[: 4 if size == 64 else 3]))
+    layers: list[nn.Module] = [nn.ConvTranspose2d(z_dim, mirrored[0], 4, stride=1, padding=0), nn.LeakyReLU(0.2)]
+    for in_ch, out_ch in itertools.pairwise(mirrored):
         layers += [nn.ConvTranspose2d(in_ch, out_ch, 3, stride=2, padding=1, output_padding=1), nn.LeakyReLU(0.2)]
-    layers += [nn.ConvTranspose2d(widths[-1], channels, 5, stride=2, padding=2, output_padding=1), nn.LeakyReLU(0.2)]
+    layers += [nn.ConvTranspose2d(mirrored[-1], channels, 5, stride=2, padding=2, output_padding=1), nn.LeakyReLU(0.2)]
     return nn.Sequential(*layers)
 
 
@@ -122,6 +130,8 @@ class LatentModel(nn.Module):
     :param image_noise: variance of the Gaussian observation likelihood (std = sqrt(image_noise))
     :param cost_loss_weight: scale of the Bernoulli cost loss
     :param cost_positive_weight: extra weight of the positive (cost > 0) samples in the cost loss
+    :param image_channels: output channels of the encoder's four stride-2 convolutions, mirrored by the decoder (images
+        only; 32x32 images use the first three)
     """
 
     def __init__(
@@ -135,8 +145,15 @@ class LatentModel(nn.Module):
         image_noise: float = 0.4,
         cost_loss_weight: float = 30.0,
         cost_positive_weight: float = 100.0,
+        image_channels: tuple[int, ...] = THESIS_IMAGE_CHANNELS,
     ) -> None:
         super().__init__()
+        self.image_channels = tuple(int(width) for width in image_channels)
+        if len(self.image_channels) != 4 or min(self.image_channels) < 1:
+            raise ValueError(
+                f"image_channels must be 4 positive channel counts of the encoder's stride-2 convolutions (the decoder "
+                f"mirrors them), got {tuple(image_channels)}; the thesis's are {THESIS_IMAGE_CHANNELS}"
+            )
         self.observation_shape = tuple(observation_shape)
         self.action_dim = action_dim
         self.feature_dim = feature_dim
@@ -154,8 +171,8 @@ class LatentModel(nn.Module):
                     f"Unsupported image shape {self.observation_shape}: only 64x64 images (and 32x32 for small tests) "
                     "are supported. Resize the observations, e.g. width=64, height=64 in safety_envs."
                 )
-            self.encoder = _image_encoder(channels, height, feature_dim)
-            self.decoder = _image_decoder(self.z_dim, channels, height)
+            self.encoder = _image_encoder(channels, height, feature_dim, self.image_channels)
+            self.decoder = _image_decoder(self.z_dim, channels, height, self.image_channels)
         elif len(self.observation_shape) == 1:
             obs_dim = self.observation_shape[0]
             self.encoder = build_mlp(obs_dim, feature_dim, hidden_units, nn.ELU, nn.ELU)

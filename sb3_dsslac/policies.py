@@ -11,7 +11,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 
 from sb3_dsslac.actor import LatentActor
 from sb3_dsslac.critics import IQNCostCritic, MeanCostCritic, TwinQCritic
-from sb3_dsslac.latent import LatentModel
+from sb3_dsslac.latent import THESIS_IMAGE_CHANNELS, LatentModel
 from sb3_dsslac.optim import fast_adam_kwargs
 
 # Filter state carried through ``predict``: (z2 (n_envs, z2_dim), previous action scaled to [-1, 1] (n_envs, action_dim))
@@ -40,6 +40,8 @@ class LatentPolicy(BasePolicy):
     :param image_noise: variance of the Gaussian observation likelihood (0.4 in the thesis code: std 0.632)
     :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss
     :param cost_positive_weight: extra weight of unsafe (cost > 0) steps in the cost likelihood
+    :param image_channels: output channels of the conv encoder's four stride-2 layers, mirrored by the decoder; the
+        thesis's (32, 64, 128, 256) by default. Narrower convolutions are most of what makes a pixel update cheap
     :param latent_learning_rate: Adam step size of the latent model
     :param normalize_images: divide uint8 images by 255
     :param normalize_vectors: standardise vector observations with the mean and std of the warm-up data (set once by
@@ -73,6 +75,7 @@ class LatentPolicy(BasePolicy):
         image_noise: float = 0.4,
         cost_loss_weight: float = 30.0,
         cost_positive_weight: float = 100.0,
+        image_channels: tuple[int, ...] = THESIS_IMAGE_CHANNELS,
         latent_learning_rate: float = 1e-4,
         normalize_images: bool = True,
         normalize_vectors: bool = True,
@@ -100,6 +103,7 @@ class LatentPolicy(BasePolicy):
         self.image_noise = image_noise
         self.cost_loss_weight = cost_loss_weight
         self.cost_positive_weight = cost_positive_weight
+        self.image_channels = tuple(image_channels)
         self.latent_learning_rate = latent_learning_rate
         self.normalize_vectors = normalize_vectors
         self._scale_images = normalize_images and is_image_space(observation_space)
@@ -121,6 +125,7 @@ class LatentPolicy(BasePolicy):
             image_noise=self.image_noise,
             cost_loss_weight=self.cost_loss_weight,
             cost_positive_weight=self.cost_positive_weight,
+            image_channels=self.image_channels,
         )
         z_dim = self.latent.z_dim
         self.actor = LatentActor(z_dim, action_dim, self.hidden_units)
@@ -160,6 +165,7 @@ class LatentPolicy(BasePolicy):
                 image_noise=self.image_noise,
                 cost_loss_weight=self.cost_loss_weight,
                 cost_positive_weight=self.cost_positive_weight,
+                image_channels=self.image_channels,
                 latent_learning_rate=self.latent_learning_rate,
                 normalize_vectors=self.normalize_vectors,
                 optimizer_class=self.optimizer_class,

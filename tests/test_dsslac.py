@@ -255,3 +255,17 @@ def test_images_are_only_scaled() -> None:
     frames = th.full((1, 3, 32, 32), 255, dtype=th.uint8)
     assert model.policy.observation_mean.numel() == 0
     assert th.equal(model.policy.preprocess(frames), th.ones(1, 3, 32, 32))
+
+
+def test_narrow_image_channels_train_and_are_saved_with_the_model(tmp_path) -> None:
+    policy_kwargs = {**SMALL_POLICY, "image_channels": (4, 8, 8, 16)}
+    model = small_model(HazardPointEnv(obs_type="pixels"), policy_kwargs=policy_kwargs)
+    model.learn(50)
+    assert model._n_updates > 0
+    model.save(tmp_path / "model.zip")
+    loaded = DSSLAC.load(tmp_path / "model.zip")
+    assert loaded.policy.image_channels == (4, 8, 8, 16)
+    assert loaded.policy.latent.encoder[0].out_channels == 4
+    observation = np.asarray(model.env.reset())
+    actions, _ = model.predict(observation, deterministic=True)
+    np.testing.assert_allclose(loaded.predict(observation, deterministic=True)[0], actions, rtol=1e-5)

@@ -245,3 +245,24 @@ def test_actor_log_prob_stable_when_saturated():
         actor.net[-1].bias[:ACTION_DIM] = 30.0  # tanh(mean) == 1 in float32
     _, log_prob = actor.action_log_prob(torch.randn(8, Z1 + Z2))
     assert torch.isfinite(log_prob).all()
+
+
+@pytest.mark.parametrize("size", [64, 32])
+def test_image_channels_set_the_conv_widths_and_the_decoder_mirrors_them(size):
+    model = make_model((3, size, size), image_channels=(8, 16, 24, 40))
+    used = (8, 16, 24, 40)[: 4 if size == 64 else 3]
+    encoder_widths = [layer.out_channels for layer in model.encoder if isinstance(layer, torch.nn.Conv2d)]
+    decoder_widths = [layer.out_channels for layer in model.decoder if isinstance(layer, torch.nn.ConvTranspose2d)]
+    assert encoder_widths == [*used, FEATURES]
+    assert decoder_widths == [*reversed(used), 3]
+    observations, actions, rewards, costs, terminated = make_batch((3, size, size))
+    loss, _ = model.loss(observations, actions, rewards, costs, terminated)
+    assert torch.isfinite(loss)
+    thesis = make_model((3, 64, 64)).encoder
+    assert [layer.out_channels for layer in thesis if isinstance(layer, torch.nn.Conv2d)] == [32, 64, 128, 256, FEATURES]
+
+
+@pytest.mark.parametrize("widths", [(8, 16, 32), (8, 16, 32, 0)])
+def test_image_channels_must_be_four_positive_widths(widths):
+    with pytest.raises(ValueError, match="image_channels"):
+        make_model((3, 64, 64), image_channels=widths)
