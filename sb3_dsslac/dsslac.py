@@ -850,7 +850,11 @@ class DSSLAC(OffPolicyAlgorithm):
             return self._gradient_step(batch)
         try:
             with th._dynamo.config.patch(trace_autograd_ops=True):
-                return self._compiled_gradient_step(batch)
+                if self.device.type != "cuda":
+                    return self._compiled_gradient_step(batch)
+                # A CUDA graph's replay reuses its output memory: keep copies of this step's statistics
+                th.compiler.cudagraph_mark_step_begin()
+                return {key: value.clone() for key, value in self._compiled_gradient_step(batch).items()}
         except Exception as error:  # the compiler's errors have no common base class
             if self._compiled_once:
                 raise
