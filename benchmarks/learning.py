@@ -1,30 +1,41 @@
 """
-Learning evidence on the CPU: DS-SLAC on a safety_envs task must raise the evaluation reward above the random
-policy's while bringing the evaluation episode cost under the budget.
+Learning evidence: DS-SLAC on a safety_envs task must raise the evaluation reward above the random policy's while
+bringing the evaluation episode cost under the budget.
 
-The ``cpu_learning`` preset (vector observations, small networks, sequences of 4, 0.4 updates per agent step) finishes
-in under 30 minutes on a 2-core machine. It writes a CSV and a PNG of the evaluation curve and prints a table.
+Every seed is a `python -m sb3_dsslac train` run in its own process with one torch thread (``--parallel`` at once),
+checkpointed every ``--checkpoint-every`` simulator steps. The benchmark is resumable: started again after any stop,
+it continues each unfinished seed from its last checkpoint and reuses the finished ones. It writes, under
+``benchmarks/results/learning_<task>_<obs>_<preset>/``, a CSV per seed, ``curves.png`` (reward and cost against
+simulator steps: each seed, their mean, the budget and the random policy's level) and ``table.md``.
 
-    python benchmarks/learning.py                      # PointGoal1, state observations, 80k agent steps
-    python benchmarks/learning.py --timesteps 20000    # a quicker look
+    python benchmarks/learning.py                                           # cpu_learning, state, 160k steps, seed 0
+    python benchmarks/learning.py --seeds 0 1 2 --parallel 2                # three seeds, two at a time
+    python benchmarks/learning.py --preset cpu --obs-type pixels --sim-steps 20000 --seeds 0 1
+
+``train_and_evaluate`` trains one seed in this process (the variants benchmark uses it).
 """
 
 import argparse
-import ast
 import csv
+import json
+import shutil
+import signal
+import subprocess
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import gymnasium as gym
 import numpy as np
-import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
 import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
 from sb3_dsslac import DSSLAC, CostEvalCallback
+from sb3_dsslac.plotting import RunResults, load_run, task_name
 from sb3_dsslac.presets import preset_hyperparams
+from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint
 
 
 class RecordMultiplier(BaseCallback):
@@ -129,41 +140,191 @@ def plot(path: Path, curve: LearningCurve, random: tuple[np.ndarray, np.ndarray]
     fig.savefig(path, dpi=110)
 
 
+# ----------------------------------------------------------------------------------------------------------------------
+# Several seeds, each a resumable `python -m sb3_dsslac train` run in its own process
+# ----------------------------------------------------------------------------------------------------------------------
+
+RUNS_DIR = "runs"
+TIMING_FILE = "wall_minutes.json"
+
+
+def seed_state(run_dir: Path) -> str:
+    """``"finished"`` (the final model is there), ``"resume"`` (a checkpoint to continue from) or ``"fresh"``."""
+    if (run_dir / FINAL_MODEL).is_file():
+        return "finished"
+    if (run_dir / "config.yaml").is_file() and find_checkpoint(run_dir) is not None:
+        return "resume"
+    return "fresh"
+
+
+def seed_command(run_dir: Path, seed: int, args: argparse.Namespace) -> list[str]:
+    """The ``train`` command of one seed: a fresh run (an unfinished one without a checkpoint is redone) or a resume."""
+    train = [sys.executable, "-m", "sb3_dsslac", "train", "--quiet", "--no-progress-bar"]
+    if seed_state(run_dir) == "resume":
+        return [*train, "--resume", str(run_dir)]
+    if run_dir.exists():
+        shutil.rmtree(run_dir)  # stopped before its first checkpoint: nothing to continue from
+    command = [*train, "--env", args.env, "--obs-type", args.obs_type, "--preset", args.preset, "--seed", str(seed)]
+    command += ["--sim-steps", str(args.sim_steps), "--eval-every", str(args.eval_every)]
+    command += ["--eval-episodes", str(args.eval_episodes), "--checkpoint-every", str(args.checkpoint_every)]
+    command += ["--threads", "1", "--out", str(run_dir)]
+    return command + (["--hyperparams", *args.hyperparams] if args.hyperparams else [])
+
+
+def run_seeds(args: argparse.Namespace, runs_root: Path) -> None:
+    """Run every unfinished seed, ``args.parallel`` at a time; a stop (Ctrl-C, SIGTERM) ends them all."""
+    pending = [seed for seed in args.seeds if seed_state(runs_root / f"seed{seed}") != "finished"]
+    for seed in sorted(set(args.seeds) - set(pending)):
+        print(f"seed {seed}: finished earlier, reused")
+    running: dict[int, tuple[subprocess.Popen, float, IO[str]]] = {}
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    try:
+        while pending or running:
+            while pending and len(running) < args.parallel:
+                seed = pending.pop(0)
+                run_dir = runs_root / f"seed{seed}"
+                command = seed_command(run_dir, seed, args)
+                print(f"seed {seed}: {'resuming' if '--resume' in command else 'starting'} ({' '.join(command[2:])})")
+                log = open(runs_root / f"seed{seed}.log", "a")  # closed when its process ends
+                running[seed] = (subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT), time.time(), log)
+            time.sleep(args.poll)
+            for seed, (process, started, log) in list(running.items()):
+                if process.poll() is None:
+                    continue
+                del running[seed]
+                log.close()
+                run_dir = runs_root / f"seed{seed}"
+                add_wall_minutes(run_dir, (time.time() - started) / 60)
+                if process.returncode != 0:
+                    raise SystemExit(f"seed {seed} failed (exit {process.returncode}); see {runs_root / f'seed{seed}.log'}")
+                print(f"seed {seed}: finished, {read_wall_minutes(run_dir):.1f} min in all")
+    finally:
+        for process, _, _ in running.values():
+            process.terminate()
+        for seed, (process, started, log) in running.items():
+            process.wait()
+            log.close()
+            add_wall_minutes(runs_root / f"seed{seed}", (time.time() - started) / 60)
+
+
+def add_wall_minutes(run_dir: Path, minutes: float) -> None:
+    """Add one process's wall minutes to the run's total (a resumed run adds up its sessions)."""
+    if run_dir.is_dir():
+        (run_dir / TIMING_FILE).write_text(json.dumps({"minutes": read_wall_minutes(run_dir) + minutes}))
+
+
+def read_wall_minutes(run_dir: Path) -> float:
+    path = run_dir / TIMING_FILE
+    return float(json.loads(path.read_text())["minutes"]) if path.is_file() else 0.0
+
+
+def random_level(args: argparse.Namespace, out: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The random policy's episode rewards and costs on the evaluation seeds, computed once and kept in ``out``."""
+    path = out / "random_policy.json"
+    if path.is_file():
+        saved = json.loads(path.read_text())
+        return np.array(saved["rewards"]), np.array(saved["costs"])
+    rewards, costs = random_policy_results(args.env, args.obs_type, args.random_episodes, 10_000)
+    path.write_text(json.dumps({"rewards": rewards.tolist(), "costs": costs.tolist()}))
+    return rewards, costs
+
+
+def write_seed_csv(path: Path, run: RunResults) -> None:
+    """One row per evaluation: simulator steps, mean and std of the episode rewards and costs."""
+    with open(path, "w", newline="") as file:
+        writer = csv.writer(file)
+        writer.writerow(["sim_steps", "eval_reward_mean", "eval_reward_std", "eval_cost_mean", "eval_cost_std"])
+        columns = (run.rewards.mean(1), run.rewards.std(1), run.costs.mean(1), run.costs.std(1))
+        for step, *values in zip(run.sim_steps, *columns, strict=True):
+            writer.writerow([int(step), *(f"{value:.4f}" for value in values)])
+
+
+def plot_seeds(path: Path, runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndarray], title: str) -> None:
+    """Reward and cost against simulator steps: each seed thin, their mean bold, the budget and the random level."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_reward, ax_cost) = plt.subplots(1, 2, figsize=(10, 3.8))
+    n_evals = min(len(run.sim_steps) for run in runs.values())
+    steps = next(iter(runs.values())).sim_steps[:n_evals]
+    for ax, field, baseline, label in ((ax_reward, "rewards", random[0], "reward"), (ax_cost, "costs", random[1], "cost")):
+        means = np.stack([getattr(run, field).mean(axis=1)[:n_evals] for run in runs.values()])
+        for seed, values in zip(runs, means, strict=True):
+            ax.plot(steps, values, linewidth=0.8, alpha=0.6, label=f"seed {seed}")
+        ax.plot(steps, means.mean(axis=0), color="black", linewidth=2.2, marker="o", label="mean over seeds")
+        ax.axhline(baseline.mean(), color="gray", linestyle=":", label="random policy")
+        ax.set_xlabel("simulator steps")
+        ax.xaxis.set_major_formatter(lambda value, _: f"{value / 1000:.0f}k")
+        ax.set_ylabel(f"evaluation episode {label}")
+        ax.grid(alpha=0.3)
+    budget = next(iter(runs.values())).cost_limit
+    ax_cost.axhline(budget, color="red", linestyle="--", label=f"budget {budget:g}")
+    ax_reward.legend(fontsize=7)
+    ax_cost.legend(fontsize=7)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndarray], runs_root: Path) -> str:
+    """Markdown: the final evaluation of each seed, their mean and std, and the random policy."""
+    lines = ["| policy | sim steps | eval reward | eval cost | wall minutes |", "|---|---:|---:|---:|---:|"]
+    finals = []
+    for seed, run in runs.items():
+        reward, cost = run.rewards[-1].mean(), run.costs[-1].mean()
+        finals.append((reward, cost))
+        minutes = read_wall_minutes(runs_root / f"seed{seed}")
+        lines.append(f"| DS-SLAC, seed {seed} | {int(run.sim_steps[-1]):,} | {reward:.2f} | {cost:.1f} | {minutes:.1f} |")
+    rewards, costs = np.array(finals).T
+    lines.append(
+        f"| DS-SLAC, mean ± std of {len(finals)} seeds | | {rewards.mean():.2f} ± {rewards.std():.2f} "
+        f"| {costs.mean():.1f} ± {costs.std():.1f} | |"
+    )
+    lines.append(f"| random policy ({len(random[0])} episodes) | | {random[0].mean():.2f} | {random[1].mean():.1f} | |")
+    policy = next(iter(runs.values())).eval_policy
+    budget = next(iter(runs.values())).cost_limit
+    lines.append("")
+    lines.append(
+        f"Each evaluation: {runs[next(iter(runs))].rewards.shape[1]} episodes of a separate env, {policy} policy "
+        f"(`train`'s default protocol); budget {budget:g}."
+    )
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="SafetyGym/PointGoal1-v0")
     parser.add_argument("--obs-type", default="state", choices=["state", "pixels"])
-    parser.add_argument("--timesteps", type=int, default=80_000, help="agent steps (2 simulator steps each)")
-    parser.add_argument("--eval-freq", type=int, default=10_000, help="agent steps between evaluations")
-    parser.add_argument("--eval-episodes", type=int, default=5)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument(
-        "--threads", type=int, default=1, help="torch threads (small networks run fastest on one; 2 can be 10x slower)"
-    )
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results"))
-    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="DSSLAC keywords over the preset")
+    parser.add_argument("--preset", default="cpu_learning", help="a preset of sb3_dsslac.presets")
+    parser.add_argument("--sim-steps", type=int, default=160_000, help="simulator steps per seed")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--parallel", type=int, default=2, help="seeds running at once, one process and thread each")
+    parser.add_argument("--eval-every", type=int, default=20_000, help="simulator steps between evaluations")
+    parser.add_argument("--eval-episodes", type=int, default=10)
+    parser.add_argument("--checkpoint-every", type=int, default=20_000, help="simulator steps between checkpoints")
+    parser.add_argument("--hyperparams", nargs="*", default=[], metavar="KEY=VALUE", help="DSSLAC keywords (YAML)")
+    parser.add_argument("--random-episodes", type=int, default=10)
+    parser.add_argument("--poll", type=float, default=5.0, help="seconds between checks on the running seeds")
+    parser.add_argument("--out", type=Path, help="results folder (default benchmarks/results/learning_<task>_<obs>_<preset>)")
     args = parser.parse_args()
-    overrides = {key: ast.literal_eval(value) for key, value in (item.split("=", 1) for item in args.set)}
-    th.set_num_threads(args.threads)
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = f"learning_{args.env.split('/')[-1].split('-')[0]}_{args.obs_type}_seed{args.seed}"
+    name = f"learning_{task_name(args.env)}_{args.obs_type}_{args.preset}"
+    out = args.out or Path("benchmarks/results") / name
+    runs_root = out / RUNS_DIR
+    runs_root.mkdir(parents=True, exist_ok=True)
 
-    curve = train_and_evaluate(
-        args.env, args.obs_type, args.timesteps, args.eval_freq, args.eval_episodes, args.seed, **overrides
-    )
-    random = random_policy_results(args.env, args.obs_type, 10, 10_000 + args.seed)
-    write_csv(args.out / f"{stem}.csv", curve)
-    plot(args.out / f"{stem}.png", curve, random)
-
-    print(f"\n{args.env} ({args.obs_type}), seed {args.seed}: {args.timesteps} agent steps in {curve.minutes:.1f} min")
-    print(f"preset cpu_learning with {overrides or 'no overrides'}")
-    print(f"{'policy':<28}{'eval reward':>16}{'eval cost':>16}")
-    rows = [("random (10 episodes)", *random)]
-    rows += [(f"DS-SLAC @ {s:,} sim steps", r, c) for s, r, c in zip(curve.sim_steps, curve.rewards, curve.costs, strict=True)]
-    for label, reward, cost in rows:
-        print(f"{label:<28}{reward.mean():>9.2f} ± {reward.std():<5.2f}{cost.mean():>9.2f} ± {cost.std():.2f}")
-    print(f"budget {curve.cost_limit:g}; final Lagrange multiplier {curve.multipliers[-1]:.3f}")
-    print(f"wrote {args.out / stem}.csv and .png")
+    run_seeds(args, runs_root)
+    runs = {seed: load_run(runs_root / f"seed{seed}") for seed in args.seeds}
+    random = random_level(args, out)
+    for seed, run in runs.items():
+        write_seed_csv(out / f"seed{seed}.csv", run)
+    title = f"{task_name(args.env)} ({args.obs_type}), preset {args.preset}, {len(runs)} seeds"
+    plot_seeds(out / "curves.png", runs, random, title)
+    table = summary_table(runs, random, runs_root)
+    (out / "table.md").write_text(f"{title}\n\n{table}\n")
+    print(f"\n{title}\n\n{table}\n\nwrote {out}/seed<S>.csv, curves.png, table.md")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,45 @@
+"""benchmarks/learning.py: several seeds in their own processes, resumable after a stop, with its CSVs, plot and table."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = [
+    "--env", "tests.registered_envs:HazardPoint-v0", "--preset", "cpu", "--obs-type", "state", "--sim-steps", "200",
+    "--eval-every", "100", "--eval-episodes", "2", "--checkpoint-every", "100", "--random-episodes", "2", "--poll", "0.2",
+    "--hyperparams", "learning_starts=40", "latent_pretrain_steps=3", "train_freq=20", "gradient_steps=2",
+]  # fmt: skip
+
+
+def run_benchmark(out: Path, *seeds: str) -> str:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
+    command = [sys.executable, "benchmarks/learning.py", *TINY, "--seeds", *seeds, "--out", str(out)]
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300, check=False)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return result.stdout
+
+
+def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
+    output = run_benchmark(tmp_path, "0", "1")
+    assert "seed 0: starting" in output and "seed 1: starting" in output
+    for name in ("seed0.csv", "seed1.csv", "curves.png", "table.md", "random_policy.json"):
+        assert (tmp_path / name).is_file(), name
+    table = (tmp_path / "table.md").read_text()
+    assert "DS-SLAC, seed 1 | 200 |" in table and "mean ± std of 2 seeds" in table and "stochastic policy" in table
+    assert len((tmp_path / "seed0.csv").read_text().splitlines()) == 3  # header and evaluations at 100 and 200
+
+    # A stop after the last checkpoint but before the final save: seed 1 resumes, seed 0 is reused untouched
+    runs = tmp_path / "runs"
+    finished = (runs / "seed0" / "model.zip").stat().st_mtime_ns
+    (runs / "seed1" / "model.zip").unlink()
+    # A stop before the first checkpoint: seed 2 has a config but nothing to continue from, so it starts afresh
+    (runs / "seed2").mkdir()
+    (runs / "seed2" / "config.yaml").write_text("env: x\n")
+    output = run_benchmark(tmp_path, "0", "1", "2")
+    assert "seed 0: finished earlier, reused" in output
+    assert "seed 1: resuming" in output and "seed 2: starting" in output
+    assert (runs / "seed0" / "model.zip").stat().st_mtime_ns == finished
+    assert (runs / "seed1" / "model.zip").is_file() and (runs / "seed2" / "model.zip").is_file()
+    assert "mean ± std of 3 seeds" in (tmp_path / "table.md").read_text()
