@@ -1,4 +1,5 @@
 import math
+from functools import partial
 
 import pytest
 import torch
@@ -8,7 +9,7 @@ from sb3_dsslac.actor import LatentActor
 from sb3_contrib.common.utils import quantile_huber_loss
 
 from sb3_dsslac.critics import IQNCostCritic, TwinQCritic, sample_taus
-from sb3_dsslac.latent import LatentModel, gaussian_kl
+from sb3_dsslac.latent import LatentModel, build_mlp, gaussian_kl
 
 Z1, Z2, FEATURES, HIDDEN = 4, 8, 16, (32, 32)
 BATCH, STEPS, ACTION_DIM = 2, 3, 2
@@ -266,3 +267,18 @@ def test_image_channels_set_the_conv_widths_and_the_decoder_mirrors_them(size):
 def test_image_channels_must_be_four_positive_widths(widths):
     with pytest.raises(ValueError, match="image_channels"):
         make_model((3, 64, 64), image_channels=widths)
+
+
+def test_twin_q_critic_loads_the_earlier_two_network_layout():
+    # Models saved before the batched critic hold two nn.Sequential Q-networks, q1 and q2
+    torch.manual_seed(0)
+    old = torch.nn.ModuleDict(
+        {name: build_mlp(Z1 + Z2 + ACTION_DIM, 1, HIDDEN, partial(torch.nn.LeakyReLU, 0.2)) for name in ("q1", "q2")}
+    )
+    critic = TwinQCritic(Z1 + Z2, ACTION_DIM, hidden_units=HIDDEN)
+    critic.load_state_dict(old.state_dict())
+    z, actions = torch.randn(5, Z1 + Z2), torch.rand(5, ACTION_DIM)
+    x = torch.cat([z, actions], dim=-1)
+    q1, q2 = critic(z, actions)
+    torch.testing.assert_close(q1, old["q1"](x))
+    torch.testing.assert_close(q2, old["q2"](x))
