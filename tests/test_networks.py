@@ -3,11 +3,10 @@ from functools import partial
 
 import pytest
 import torch
+from sb3_contrib.common.utils import quantile_huber_loss
 from torch.distributions import Normal, kl_divergence
 
 from sb3_dsslac.actor import LatentActor
-from sb3_contrib.common.utils import quantile_huber_loss
-
 from sb3_dsslac.critics import IQNCostCritic, TwinQCritic, sample_taus
 from sb3_dsslac.latent import LatentModel, build_mlp, gaussian_kl
 

@@ -3,10 +3,9 @@
 import numpy as np
 import pytest
 import torch as th
-
-from sb3_dsslac import DSSLAC
 from sb3_contrib.common.utils import quantile_huber_loss
 
+from sb3_dsslac import DSSLAC
 from sb3_dsslac.critics import IQNCostCritic, sample_taus
 from sb3_dsslac.lagrange import pid_lagrange_step
 from tests.synthetic_envs import HazardPointEnv
