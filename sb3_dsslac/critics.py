@@ -55,8 +55,6 @@ class TwinQCritic(nn.Module):
     @staticmethod
     def _load_two_sequentials(state_dict: dict[str, Tensor], prefix: str, *_args: object) -> None:
         """Rewrite ``q1.<2k>.weight`` (out, in) / ``q1.<2k>.bias`` of the earlier layout into the stacked tensors."""
-        if f"{prefix}q1.0.weight" not in state_dict:
-            return
         layer = 0
         while f"{prefix}q1.{2 * layer}.weight" in state_dict:
             keys = [f"{prefix}q{i}.{2 * layer}" for i in (1, 2)]

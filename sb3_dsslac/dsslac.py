@@ -438,16 +438,18 @@ class DSSLAC(OffPolicyAlgorithm):
             optimizers.append(self.ent_coef_optimizer)
         self._learning_rates = {optimizer: th.zeros((), device=self.device) for optimizer in optimizers}
         self._lagrange_raw_device = th.zeros((), device=self.device)
+        # float64 like the host's step sizes: the SGD rules step with exactly the same value on the host and the device
+        self._lagrange_learning_rate_device = th.zeros((), dtype=th.float64, device=self.device)
         self._first_nonfinite_update = th.full((len(self._GUARDED_LOSSES),), -1, dtype=th.long, device=self.device)
         self._burst_update_index = th.zeros((), dtype=th.long, device=self.device)
         self._target_params = [*policy.critic_target.parameters(), *policy.cost_critic_target.parameters()]
+        self._source_params = [*policy.critic.parameters(), *policy.cost_critic.parameters()]
         # The reference trains the IQN's cosine and quantile nets with two optimizers, each clipped at 40: clipped apart
         self._cost_critic_clip_groups: tuple[slice, ...] = (slice(None),)
         if isinstance(policy.cost_critic, IQNCostCritic):
             n_cosine = len(list(policy.cost_critic.cosine_net.parameters()))
             assert list(policy.cost_critic.parameters())[:n_cosine] == list(policy.cost_critic.cosine_net.parameters())
             self._cost_critic_clip_groups = (slice(0, n_cosine), slice(n_cosine, None))
-        self._source_params = [*policy.critic.parameters(), *policy.cost_critic.parameters()]
         self._compiled_gradient_step = None
         self._compiled_once = False
         if self.compile_updates:
@@ -601,12 +603,16 @@ class DSSLAC(OffPolicyAlgorithm):
         return contextlib.nullcontext()
 
     def _begin_burst(self) -> None:
-        """Bring the device copies of the step sizes and the multiplier up to date and clear the NaN notes."""
+        """
+        Bring the device copies of the step sizes and the multiplier up to date and clear the NaN notes: the update reads
+        no Python value that changes during training, so a compiled update never recompiles for one.
+        """
         for optimizer, learning_rate in self._learning_rates.items():
             learning_rate.fill_(optimizer.param_groups[0]["lr"])
             if self._compiled_gradient_step is not None:
                 init_adam_state(optimizer)
         self._lagrange_raw_device.copy_(self.lagrange_raw)
+        self._lagrange_learning_rate_device.fill_(self.current_lagrange_learning_rate)
         self._first_nonfinite_update.fill_(-1)
         self._burst_update_index.zero_()
 
@@ -752,9 +758,8 @@ class DSSLAC(OffPolicyAlgorithm):
         ent_coef = th.exp(self.log_ent_coef.detach()) if self.ent_coef_optimizer is not None else self.ent_coef_tensor
         multiplier = F.softplus(self._lagrange_raw_device)
 
-        with th.no_grad():
-            target_taus = sample_taus(n, self.n_quantiles, self.device)
-            target_q, target_quantiles = self._td_targets(batch, latents, ent_coef, target_taus)
+        target_taus = sample_taus(n, self.n_quantiles, self.device)
+        target_q, target_quantiles = self._td_targets(batch, latents, ent_coef, target_taus)  # under no_grad
 
         q_values = policy.critic(z, actions)  # (2, B, 1)
         critic_loss = (q_values - target_q).pow(2).mean(dim=(1, 2)).sum()  # MSE of each network, summed
@@ -795,7 +800,7 @@ class DSSLAC(OffPolicyAlgorithm):
         if self.lagrange == "critic":
             with th.no_grad():
                 raw = sgd_lagrange_step_on_device(
-                    self._lagrange_raw_device, stats["cost_cvar"], self.critic_cost_budget, self.current_lagrange_learning_rate
+                    self._lagrange_raw_device, stats["cost_cvar"], self.critic_cost_budget, self._lagrange_learning_rate_device
                 )
                 self._lagrange_raw_device.copy_(raw)
         if self.ent_coef_optimizer is not None:
@@ -898,6 +903,7 @@ class DSSLAC(OffPolicyAlgorithm):
             "_bf16_active",
             "_learning_rates",
             "_lagrange_raw_device",
+            "_lagrange_learning_rate_device",
             "_first_nonfinite_update",
             "_burst_update_index",
             "_target_params",

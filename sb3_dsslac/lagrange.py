@@ -42,12 +42,15 @@ def sgd_lagrange_step(raw: float, cost: float, budget_per_step: float, learning_
     return raw + learning_rate * sigmoid / multiplier * (cost - budget_per_step)
 
 
-def sgd_lagrange_step_on_device(raw: th.Tensor, cost: th.Tensor, budget_per_step: float, learning_rate: float) -> th.Tensor:
+def sgd_lagrange_step_on_device(
+    raw: th.Tensor, cost: th.Tensor, budget_per_step: float, learning_rate: float | th.Tensor
+) -> th.Tensor:
     """
     ``sgd_lagrange_step`` in tensor ops (no host read), for the rule that steps inside a burst of updates.
 
     :param raw: the raw parameter (0-d tensor)
     :param cost: the cost estimate (0-d tensor)
+    :param learning_rate: SGD step size (a float, or a 0-d tensor on the device)
     :return: the new raw parameter (0-d tensor)
     """
     return raw + learning_rate * th.sigmoid(raw) / F.softplus(raw) * (cost - budget_per_step)

@@ -77,8 +77,8 @@ def test_multiplier_steps_with_the_decayed_step_size(rule: str, monkeypatch) -> 
         rates.append(learning_rate)
         return original(raw, cost, budget, learning_rate)
 
-    def device_spy(raw: th.Tensor, cost: th.Tensor, budget: float, learning_rate: float) -> th.Tensor:
-        rates.append(learning_rate)
+    def device_spy(raw: th.Tensor, cost: th.Tensor, budget: float, learning_rate: th.Tensor) -> th.Tensor:
+        rates.append(float(learning_rate))
         return lagrange.sgd_lagrange_step_on_device(raw, cost, budget, learning_rate)
 
     monkeypatch.setattr("sb3_dsslac.lagrange.sgd_lagrange_step", spy)
