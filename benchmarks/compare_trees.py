@@ -21,6 +21,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+from machine import cpu_model
+
+from sb3_dsslac.runs import parse_hyperparams
+
 # Runs inside each subprocess: fill the buffer with random steps, warm up (and compile), then time ``train`` bursts.
 _TIMING_CODE = """
 import json, sys, time
@@ -44,19 +48,6 @@ start = time.perf_counter()
 model.train(gradient_steps=args["updates"], batch_size=model.batch_size)
 print(json.dumps({"updates_per_s": args["updates"] / (time.perf_counter() - start)}))
 """
-
-
-def parse_keywords(pairs: list[str]) -> dict:
-    """``["key=value", ...]`` read as YAML values, like the CLI's ``--hyperparams``."""
-    import yaml
-
-    keywords = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep:
-            raise SystemExit(f"keywords take key=value pairs, got {pair!r}")
-        keywords[key] = yaml.safe_load(value)
-    return keywords
 
 
 def time_tree(tree: Path, settings: dict, timeout: float) -> float:
@@ -92,11 +83,11 @@ def main() -> None:
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per timing run")
     args = parser.parse_args()
 
-    common = parse_keywords(args.keywords)
+    common = parse_hyperparams(args.keywords)
     per_tree: list[dict] = [dict(common) for _ in args.trees]
     for item in args.tree_keywords:
         index, _, pair = item.partition(":")
-        per_tree[int(index)].update(parse_keywords([pair]))
+        per_tree[int(index)].update(parse_hyperparams([pair]))
     rates: list[list[float]] = [[] for _ in args.trees]
     for round_index in range(args.rounds):
         for index, tree in enumerate(args.trees):
@@ -113,18 +104,7 @@ def main() -> None:
             rates[index].append(time_tree(tree, settings, args.timeout))
             print(f"round {round_index + 1}, tree {index} ({tree}): {rates[index][-1]:.2f} updates/s", flush=True)
 
-    cpu = (
-        next(
-            (
-                line.split(":", 1)[1].strip()
-                for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")
-            ),
-            "unknown CPU",
-        )
-        if Path("/proc/cpuinfo").exists()
-        else "unknown CPU"
-    )
+    cpu = cpu_model()
     print(
         f"\n{args.preset} preset, {args.obs_type} observations of {args.env}; {cpu}, {args.threads} torch thread(s); "
         f"median of {args.rounds} rounds of {args.updates} updates, trees in turn\n"

@@ -17,6 +17,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from machine import cpu_model
+
 # Same work in every trial: the keywords the sampler would vary that change the time per update
 FIXED = ["batch_size=32", "latent_batch_size=16", "sequence_length=4", "n_quantiles=16", "cvar_risk_level=1.0"]
 CONTROL = """
@@ -72,11 +74,7 @@ def main() -> None:
     control_alone = control_seconds(1)
     control_together = control_seconds(args.workers)
 
-    cpu = "unknown CPU"
-    if Path("/proc/cpuinfo").exists():
-        lines = Path("/proc/cpuinfo").read_text().splitlines()
-        names = [line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")]
-        cpu = f"{names[0]}, {len(names)} CPUs" if names else cpu
+    cpu = cpu_model()
     threads = args.threads if args.threads is not None else "default (1)"
     print(f"\n{cpu}; tune --preset cpu --obs-type state --timesteps {args.timesteps} --n-trials 1, --threads {threads}\n")
     print(f"| what | one alone, s | each of {args.workers} at once, s | ratio |\n|---|---:|---:|---:|")

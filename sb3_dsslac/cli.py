@@ -11,12 +11,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.presets import PRESETS
 from sb3_dsslac.rollouts import evaluate, format_episodes
-from sb3_dsslac.runs import TrainConfig, find_run_config, resume, train
+from sb3_dsslac.runs import TrainConfig, find_run_config, parse_hyperparams, resume, train
 
 # DSSLAC keywords that get their own flag (``--learning-rate``); any other goes through ``--hyperparams key=value``
 HYPERPARAM_FLAGS: dict[str, type] = {
@@ -38,17 +36,6 @@ HYPERPARAM_FLAGS: dict[str, type] = {
     "n_quantiles": int,
     "cvar_risk_level": float,
 }
-
-
-def parse_hyperparams(pairs: list[str] | None) -> dict[str, Any]:
-    """``["key=value", ...]`` to a dict, each value read as YAML (``policy_kwargs="{z1_dim: 16}"``)."""
-    hyperparams: dict[str, Any] = {}
-    for pair in pairs or []:
-        key, sep, value = pair.partition("=")
-        if not sep or not key:
-            raise ValueError(f"--hyperparams takes key=value pairs, got {pair!r}")
-        hyperparams[key.strip()] = yaml.safe_load(value)
-    return hyperparams
 
 
 def _flag_hyperparams(args: argparse.Namespace) -> dict[str, Any]:

@@ -157,6 +157,17 @@ def _make_logger(run_dir: Path, verbose: int, resume_from: int | None) -> Logger
     return Logger(str(run_dir), formats)
 
 
+def parse_hyperparams(pairs: list[str] | None) -> dict[str, Any]:
+    """``["key=value", ...]`` to a dict, each value read as YAML (``policy_kwargs="{z1_dim: 16}"``)."""
+    hyperparams: dict[str, Any] = {}
+    for pair in pairs or []:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--hyperparams takes key=value pairs, got {pair!r}")
+        hyperparams[key.strip()] = yaml.safe_load(value)
+    return hyperparams
+
+
 def resolved_hyperparams(config: TrainConfig, env: gym.Env) -> dict[str, Any]:
     """The DSSLAC keywords of a run: preset, then the config's overrides, then the env's episode length if unset."""
     hyperparams = preset_hyperparams(config.preset, config.hyperparams)
