@@ -36,6 +36,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 from env_throughput import single_env_rate
+from machine import cpu_model
 from stable_baselines3.common.utils import set_random_seed
 
 import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
@@ -289,7 +290,7 @@ def main() -> None:
         preset_rows += measure_paths(paths, args.preset_updates, args.rounds, device)[0]
         del paths
 
-    name = th.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {th.get_num_threads()} torch threads"
+    name = th.cuda.get_device_name(device) if device.type == "cuda" else f"{cpu_model()}, {th.get_num_threads()} torch threads"
     header = ["| update path | updates/s | vs first row | ops/update | syncs/update |", "|---|---:|---:|---:|---:|"]
     thesis_setup = (
         f" Thesis shapes (64x64, L=10, batches 32 + 64, buffer of {args.buffer_size:,} frames): {args.updates} timed updates "
