@@ -1,6 +1,6 @@
 """
-The thesis's protocol from the command line: ``python -m sb3_dsslac train | plot | evaluate | tune``. This module
-only parses arguments and dispatches to ``runs``, ``rollouts``, ``plotting`` and ``hpo``.
+The thesis's protocol from the command line: ``python -m sb3_dsslac train | plot | evaluate | beliefs | tune``. This
+module only parses arguments and dispatches to ``runs``, ``rollouts``, ``plotting``, ``beliefs`` and ``hpo``.
 
 Units: ``--sim-steps`` and every ``*-every`` are simulator steps (the thesis's "environment steps"); DSSLAC counts
 agent steps, ``action_repeat`` simulator steps each (2 on the Safety-Gym tasks).
@@ -49,7 +49,7 @@ def _add_model_flags(parser: argparse.ArgumentParser, threads_help: str) -> None
         choices=sorted(PRESETS),
         default="thesis",
         help="thesis: Table 5.2; thesis_fast: the same with share_latent_batch and bf16; cpu: small and quick; "
-        "cpu_learning: the CPU learning benchmark's",
+        "cpu_learning: the CPU learning benchmark's (state); cpu_pixels: the pixel learning benchmark's",
     )
     parser.add_argument("--obs-type", choices=["pixels", "state"], help="observation type (default: the env's)")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
@@ -103,6 +103,18 @@ def build_parser() -> argparse.ArgumentParser:
     eval_parser.add_argument("--video-episodes", type=int, default=1, help="episodes recorded into the video")
     eval_parser.add_argument("--obs-type", choices=["pixels", "state"])
     eval_parser.add_argument("--device", default="auto")
+
+    beliefs_parser = commands.add_parser(
+        "beliefs", help="a pixel agent's frames beside its latent model's reconstructions and predicted cost, as a PNG"
+    )
+    beliefs_parser.add_argument("model", help="a saved model (.zip) trained on pixels")
+    beliefs_parser.add_argument("--env", help="env id (default: the model's run's)")
+    beliefs_parser.add_argument("--seed", type=int, default=0, help="seed of the episode")
+    beliefs_parser.add_argument("--steps", type=int, help="agent steps to run (default: the whole episode)")
+    beliefs_parser.add_argument("--frames", type=int, default=10, help="frames shown")
+    beliefs_parser.add_argument("--stochastic", action="store_true", help="sample the filter and the action")
+    beliefs_parser.add_argument("--out", default="beliefs.png", help="the PNG")
+    beliefs_parser.add_argument("--device", default="auto")
 
     tune_parser = commands.add_parser("tune", help="Optuna search, maximising eval reward under the cost budget")
     tune_parser.add_argument("--env", required=True)
@@ -197,6 +209,33 @@ def _evaluate_command(args: argparse.Namespace) -> None:
         print(f"video: {args.video}")
 
 
+def _beliefs_command(args: argparse.Namespace) -> None:
+    from sb3_dsslac.beliefs import episode_beliefs, mean_cost_probabilities, plot_beliefs
+
+    if not Path(args.model).is_file():
+        raise FileNotFoundError(f"No model file {args.model}")
+    run_config = find_run_config(Path(args.model))
+    if args.env is None and run_config is None:
+        raise ValueError(f"{args.model} is not in a run folder: pass the env id (--env)")
+    env_id = args.env or run_config.env  # type: ignore[union-attr]
+    same_env = run_config is not None and run_config.env == env_id
+    model = DSSLAC.load(args.model, device=args.device)
+    beliefs = episode_beliefs(
+        model,
+        env_id,
+        seed=args.seed,
+        max_steps=args.steps,
+        deterministic=not args.stochastic,
+        env_kwargs=run_config.env_kwargs if same_env else None,  # type: ignore[union-attr]
+    )
+    path = plot_beliefs(beliefs, args.out, n_frames=args.frames)
+    on_costly, on_free = mean_cost_probabilities(beliefs)
+    print(
+        f"{len(beliefs.costs)} steps, reward {beliefs.rewards.sum():.2f}, cost {beliefs.costs.sum():g}; "
+        f"mean predicted p(cost): {on_costly:.3f} on the costly steps, {on_free:.3f} on the others\nwrote {path}"
+    )
+
+
 def _tune_command(args: argparse.Namespace) -> None:
     from sb3_dsslac.hpo import TuneSpec, summarize_study, tune
 
@@ -232,7 +271,13 @@ def _tune_command(args: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run a command; errors of bad input end with a one-line message and exit status 2."""
     args = build_parser().parse_args(argv)
-    command = {"train": _train_command, "plot": _plot_command, "evaluate": _evaluate_command, "tune": _tune_command}
+    command = {
+        "train": _train_command,
+        "plot": _plot_command,
+        "evaluate": _evaluate_command,
+        "beliefs": _beliefs_command,
+        "tune": _tune_command,
+    }
     try:
         command[args.command](args)
     except (ValueError, FileNotFoundError, FileExistsError) as error:
