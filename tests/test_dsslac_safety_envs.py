@@ -6,12 +6,14 @@ from functools import partial
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch as th
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import SubprocVecEnv
 
 import safety_envs  # noqa: F401
 from sb3_dsslac import DSSLAC
+from sb3_dsslac.presets import preset_hyperparams
 from tests.test_dsslac import SMALL
 
 
@@ -64,3 +66,18 @@ def test_subproc_envs_of_two_tasks_train_with_one_update_per_agent_step() -> Non
     assert model._n_updates == 30  # bursts after agent steps 40, 50 and 60
     buffer = model.replay_buffer
     assert (buffer.episode_ids[:, 0] >= 0).sum() == (buffer.episode_ids[:, 1] >= 0).sum() == 31  # 30 steps + reset frame
+
+
+def test_cpu_pixels_preset_trains_the_narrow_conv_model_on_pointgoal1(tmp_path) -> None:
+    hyperparams = preset_hyperparams(
+        "cpu_pixels", {"learning_starts": 40, "latent_pretrain_steps": 2, "train_freq": 20, "buffer_size": 2000}
+    )
+    model = DSSLAC("LatentPolicy", gym.make("SafetyGym/PointGoal1-v0"), seed=0, **hyperparams)
+    model.learn(80)
+    assert model._n_updates == 2 * hyperparams["gradient_steps"]  # bursts after the rollouts ending at 60 and 80
+    convolutions = [layer for layer in model.policy.latent.encoder.modules() if isinstance(layer, th.nn.Conv2d)]
+    assert [layer.out_channels for layer in convolutions][:4] == [8, 16, 32, 64]
+    model.save(tmp_path / "model.zip")
+    loaded = DSSLAC.load(tmp_path / "model.zip")
+    assert loaded.policy.image_channels == (8, 16, 32, 64)
+    assert loaded.policy.latent.encoder[0].out_channels == 8
