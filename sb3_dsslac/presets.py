@@ -66,16 +66,16 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
     # The pixel learning benchmark's preset (benchmarks/learning.py --preset cpu_pixels --obs-type pixels): the thesis's
     # 64x64x3 frames, conv encoder and decoder, latent filter, IQN cost critic and multiplier, sized so that 300k
-    # simulator steps take about an hour on one CPU core. Departures from Table 5.2, and what each buys:
-    # - convolution widths (8, 16, 32, 64), a quarter of the thesis's: 4x the updates/s of the same sizes at the
-    #   thesis's widths (1.7 -> 7 updates/s at these batch sizes, one thread, AMD EPYC); the scene (floor, goal,
-    #   hazards, vases) has few textures to encode;
+    # simulator steps fit in about 75 minutes of one CPU core. Departures from Table 5.2, and what each buys:
+    # - convolution widths (8, 16, 32, 64), a quarter of the thesis's (NCHW at these widths): about 4x the updates/s of
+    #   the same sizes at the thesis's widths (1.7 -> 6-7 updates/s at these batch sizes, one thread, AMD EPYC); the
+    #   scene (floor, goal, hazards, vases) has few textures to encode;
     # - the small latent and networks of cpu_learning (z 16 + 64, feature 64, hidden 128, 32 quantiles and cosines):
-    #   cheaper filter steps when acting, the update is the convolutions' anyway;
+    #   cheaper filter steps when acting; the update's time is the convolutions' anyway;
     # - sequences of 4 frames, latent batch 16, actor-critic batch 32: 80 frames through the decoder per update
     #   instead of 352;
-    # - 0.125 updates per agent step (10 every 80) instead of 1: about 19k updates in 150k agent steps, what fits
-    #   in an hour beside acting (about 6 ms per agent step, render included) and 12 evaluations;
+    # - 7 updates every 80 agent steps instead of 1 per step: about 13k updates in 150k agent steps, what fits beside
+    #   acting (about 6 ms per agent step, render included) and 12 evaluations of 10 episodes;
     # - a 5k-step warm-up and 1k pre-training updates instead of 30k and 30k;
     # - the thesis's multiplier (init 0.02, lr 2e-4), as cpu_learning: faster ones shut the agent down there
     "cpu_pixels": {
@@ -85,7 +85,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "latent_batch_size": 16,
         "sequence_length": 4,
         "train_freq": 80,
-        "gradient_steps": 10,
+        "gradient_steps": 7,
         "n_quantiles": 32,
         "policy_kwargs": {
             "image_channels": (8, 16, 32, 64),
