@@ -6,11 +6,14 @@ Every seed is a `python -m sb3_dsslac train` run in its own process with one tor
 checkpointed every ``--checkpoint-every`` simulator steps. The benchmark is resumable: started again after any stop,
 it continues each unfinished seed from its last checkpoint and reuses the finished ones. It writes, under
 ``benchmarks/results/learning_<task>_<obs>_<preset>/``, a CSV per seed, ``curves.png`` (reward and cost against
-simulator steps: each seed, their mean, the budget and the random policy's level) and ``table.md``.
+simulator steps: each seed, their mean, the budget and the random policy's level) and ``table.md`` (with each seed's
+wall and CPU minutes). On pixels it also shows what the first seed's agent sees and believes: ``beliefs.png`` (frames
+beside the latent model's reconstructions, with the predicted probability of cost) and ``episode.mp4`` (a
+deterministic evaluation episode, first-person beside third-person).
 
     python benchmarks/learning.py                                           # cpu_learning, state, 160k steps, seed 0
     python benchmarks/learning.py --seeds 0 1 2 --parallel 2                # three seeds, two at a time
-    python benchmarks/learning.py --preset cpu --obs-type pixels --sim-steps 20000 --seeds 0 1
+    python benchmarks/learning.py --preset cpu_pixels --obs-type pixels --sim-steps 300000 --seeds 0 1 2 --parallel 2
 
 ``train_and_evaluate`` trains one seed in this process (the variants benchmark uses it).
 """
@@ -18,6 +21,7 @@ simulator steps: each seed, their mean, the budget and the random policy's level
 import argparse
 import csv
 import json
+import resource
 import shutil
 import signal
 import subprocess
@@ -33,9 +37,11 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
 from sb3_dsslac import DSSLAC, CostEvalCallback
+from sb3_dsslac.beliefs import episode_beliefs, mean_cost_probabilities, plot_beliefs
 from sb3_dsslac.plotting import RunResults, load_run, task_name
 from sb3_dsslac.presets import preset_hyperparams
-from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint
+from sb3_dsslac.rollouts import evaluate
+from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint, load_config
 
 
 class RecordMultiplier(BaseCallback):
@@ -189,33 +195,45 @@ def run_seeds(args: argparse.Namespace, runs_root: Path) -> None:
                 running[seed] = (subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT), time.time(), log)
             time.sleep(args.poll)
             for seed, (process, started, log) in list(running.items()):
-                if process.poll() is None:
+                cpu_before = children_cpu_seconds()
+                if process.poll() is None:  # reaped when it ended: its CPU time joins the children's
                     continue
                 del running[seed]
                 log.close()
                 run_dir = runs_root / f"seed{seed}"
-                add_wall_minutes(run_dir, (time.time() - started) / 60)
+                add_minutes(run_dir, (time.time() - started) / 60, (children_cpu_seconds() - cpu_before) / 60)
                 if process.returncode != 0:
                     raise SystemExit(f"seed {seed} failed (exit {process.returncode}); see {runs_root / f'seed{seed}.log'}")
-                print(f"seed {seed}: finished, {read_wall_minutes(run_dir):.1f} min in all")
+                wall, cpu = read_minutes(run_dir)
+                print(f"seed {seed}: finished, {wall:.1f} wall and {cpu:.1f} CPU minutes in all")
     finally:
         for process, _, _ in running.values():
             process.terminate()
         for seed, (process, started, log) in running.items():
+            cpu_before = children_cpu_seconds()
             process.wait()
             log.close()
-            add_wall_minutes(runs_root / f"seed{seed}", (time.time() - started) / 60)
+            add_minutes(runs_root / f"seed{seed}", (time.time() - started) / 60, (children_cpu_seconds() - cpu_before) / 60)
 
 
-def add_wall_minutes(run_dir: Path, minutes: float) -> None:
-    """Add one process's wall minutes to the run's total (a resumed run adds up its sessions)."""
+def add_minutes(run_dir: Path, wall: float, cpu: float) -> None:
+    """Add one process's wall and CPU minutes to the run's totals (a resumed run adds up its sessions)."""
     if run_dir.is_dir():
-        (run_dir / TIMING_FILE).write_text(json.dumps({"minutes": read_wall_minutes(run_dir) + minutes}))
+        totals = read_minutes(run_dir)
+        (run_dir / TIMING_FILE).write_text(json.dumps({"minutes": totals[0] + wall, "cpu_minutes": totals[1] + cpu}))
 
 
-def read_wall_minutes(run_dir: Path) -> float:
+def read_minutes(run_dir: Path) -> tuple[float, float]:
+    """The run's wall and CPU minutes so far (CPU minutes: user + system time of its processes)."""
     path = run_dir / TIMING_FILE
-    return float(json.loads(path.read_text())["minutes"]) if path.is_file() else 0.0
+    saved = json.loads(path.read_text()) if path.is_file() else {}
+    return float(saved.get("minutes", 0.0)), float(saved.get("cpu_minutes", 0.0))
+
+
+def children_cpu_seconds() -> float:
+    """User + system seconds of every child process reaped so far."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def random_level(args: argparse.Namespace, out: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -271,19 +289,24 @@ def plot_seeds(path: Path, runs: dict[int, RunResults], random: tuple[np.ndarray
 
 def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndarray], runs_root: Path) -> str:
     """Markdown: the final evaluation of each seed, their mean and std, and the random policy."""
-    lines = ["| policy | sim steps | eval reward | eval cost | wall minutes |", "|---|---:|---:|---:|---:|"]
+    lines = [
+        "| policy | sim steps | eval reward | eval cost | wall minutes | CPU minutes |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
     finals = []
     for seed, run in runs.items():
         reward, cost = run.rewards[-1].mean(), run.costs[-1].mean()
         finals.append((reward, cost))
-        minutes = read_wall_minutes(runs_root / f"seed{seed}")
-        lines.append(f"| DS-SLAC, seed {seed} | {int(run.sim_steps[-1]):,} | {reward:.2f} | {cost:.1f} | {minutes:.1f} |")
+        wall, cpu = read_minutes(runs_root / f"seed{seed}")
+        lines.append(
+            f"| DS-SLAC, seed {seed} | {int(run.sim_steps[-1]):,} | {reward:.2f} | {cost:.1f} | {wall:.1f} | {cpu:.1f} |"
+        )
     rewards, costs = np.array(finals).T
     lines.append(
         f"| DS-SLAC, mean ± std of {len(finals)} seeds | | {rewards.mean():.2f} ± {rewards.std():.2f} "
-        f"| {costs.mean():.1f} ± {costs.std():.1f} | |"
+        f"| {costs.mean():.1f} ± {costs.std():.1f} | | |"
     )
-    lines.append(f"| random policy ({len(random[0])} episodes) | | {random[0].mean():.2f} | {random[1].mean():.1f} | |")
+    lines.append(f"| random policy ({len(random[0])} episodes) | | {random[0].mean():.2f} | {random[1].mean():.1f} | | |")
     policy = next(iter(runs.values())).eval_policy
     budget = next(iter(runs.values())).cost_limit
     lines.append("")
@@ -292,6 +315,23 @@ def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndar
         f"(`train`'s default protocol); budget {budget:g}."
     )
     return "\n".join(lines)
+
+
+def write_pictures(out: Path, run_dir: Path, episode_seed: int) -> str:
+    """``beliefs.png`` and ``episode.mp4`` of the run's final model on one evaluation episode; a line saying so."""
+    config = load_config(run_dir)
+    model = DSSLAC.load(run_dir / FINAL_MODEL, device="cpu")
+    beliefs = episode_beliefs(model, config.env, seed=episode_seed, env_kwargs=config.env_kwargs)
+    plot_beliefs(beliefs, out / "beliefs.png")
+    on_costly, on_free = mean_cost_probabilities(beliefs)
+    results = evaluate(
+        model, config.env, episodes=1, deterministic=True, seed=episode_seed, video=out / "episode.mp4",
+        obs_type="pixels", env_kwargs=config.env_kwargs,
+    )  # fmt: skip
+    return (
+        f"{run_dir.name}, evaluation episode {episode_seed}, deterministic policy: reward {results.rewards[0]:.2f}, "
+        f"cost {results.costs[0]:g}; predicted p(cost) {on_costly:.3f} on its costly steps, {on_free:.3f} on the others"
+    )
 
 
 def main() -> None:
@@ -307,6 +347,9 @@ def main() -> None:
     parser.add_argument("--checkpoint-every", type=int, default=20_000, help="simulator steps between checkpoints")
     parser.add_argument("--hyperparams", nargs="*", default=[], metavar="KEY=VALUE", help="DSSLAC keywords (YAML)")
     parser.add_argument("--random-episodes", type=int, default=10)
+    parser.add_argument(
+        "--no-pictures", action="store_true", help="on pixels, skip beliefs.png and episode.mp4 of the first seed"
+    )
     parser.add_argument("--poll", type=float, default=5.0, help="seconds between checks on the running seeds")
     parser.add_argument("--out", type=Path, help="results folder (default benchmarks/results/learning_<task>_<obs>_<preset>)")
     args = parser.parse_args()
@@ -325,6 +368,9 @@ def main() -> None:
     table = summary_table(runs, random, runs_root)
     (out / "table.md").write_text(f"{title}\n\n{table}\n")
     print(f"\n{title}\n\n{table}\n\nwrote {out}/seed<S>.csv, curves.png, table.md")
+    if args.obs_type == "pixels" and not args.no_pictures:
+        print(write_pictures(out, runs_root / f"seed{args.seeds[0]}", episode_seed=10_000))
+        print(f"wrote {out}/beliefs.png, episode.mp4")
 
 
 if __name__ == "__main__":

@@ -43,3 +43,17 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
     assert (runs / "seed0" / "model.zip").stat().st_mtime_ns == finished
     assert (runs / "seed1" / "model.zip").is_file() and (runs / "seed2" / "model.zip").is_file()
     assert "mean ± std of 3 seeds" in (tmp_path / "table.md").read_text()
+
+
+def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None:
+    pixels = [flag if flag != "state" else "pixels" for flag in TINY]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
+    command = [sys.executable, "benchmarks/learning.py", *pixels, "--seeds", "3", "--out", str(tmp_path)]
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300, check=False)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "seed3, evaluation episode 10000, deterministic policy" in result.stdout
+    assert (tmp_path / "beliefs.png").read_bytes()[:4] == b"\x89PNG"
+    assert (tmp_path / "episode.mp4").stat().st_size > 1000
+    row = next(line for line in (tmp_path / "table.md").read_text().splitlines() if "seed 3" in line)
+    wall, cpu = (float(cell) for cell in row.strip("|").split("|")[-2:])
+    assert 0 < cpu <= 2 * wall  # one torch thread: at most the process's own core plus its render and data threads
