@@ -6,10 +6,10 @@ Every seed is a `python -m sb3_dsslac train` run in its own process with one tor
 checkpointed every ``--checkpoint-every`` simulator steps. The benchmark is resumable: started again after any stop,
 it continues each unfinished seed from its last checkpoint and reuses the finished ones. It writes, under
 ``benchmarks/results/learning_<task>_<obs>_<preset>/``, a CSV per seed, ``curves.png`` (reward and cost against
-simulator steps: each seed, their mean, the budget and the random policy's level) and ``table.md`` (with each seed's
-wall and CPU minutes). On pixels it also shows what the first seed's agent sees and believes: ``beliefs.png`` (frames
-beside the latent model's reconstructions, with the predicted probability of cost) and ``episode.mp4`` (a
-deterministic evaluation episode, first-person beside third-person).
+simulator steps: each seed, their mean, the budget and the random policy's level; and each seed's Lagrange
+multiplier) and ``table.md`` (with each seed's wall and CPU minutes). On pixels it also shows what the first seed's
+agent sees and believes: ``beliefs.png`` (frames beside the latent model's reconstructions, with the predicted
+probability of cost) and ``episode.mp4`` (a deterministic evaluation episode, first-person beside third-person).
 
     python benchmarks/learning.py                                           # cpu_learning, state, 160k steps, seed 0
     python benchmarks/learning.py --seeds 0 1 2 --parallel 2                # three seeds, two at a time
@@ -257,14 +257,34 @@ def write_seed_csv(path: Path, run: RunResults) -> None:
             writer.writerow([int(step), *(f"{value:.4f}" for value in values)])
 
 
-def plot_seeds(path: Path, runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndarray], title: str) -> None:
-    """Reward and cost against simulator steps: each seed thin, their mean bold, the budget and the random level."""
+def read_multiplier(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The Lagrange multiplier logged during training, and the simulator steps at which it was logged."""
+    import pandas as pd
+
+    progress = pd.read_csv(run_dir / "progress.csv")
+    if "train/lagrange_multiplier" not in progress:
+        return np.zeros(0), np.zeros(0)
+    logged = progress[["time/sim_steps", "train/lagrange_multiplier"]].dropna()
+    return logged["time/sim_steps"].to_numpy(), logged["train/lagrange_multiplier"].to_numpy()
+
+
+def plot_seeds(
+    path: Path,
+    runs: dict[int, RunResults],
+    random: tuple[np.ndarray, np.ndarray],
+    multipliers: dict[int, tuple[np.ndarray, np.ndarray]],
+    title: str,
+) -> None:
+    """
+    Reward and cost against simulator steps (each seed thin, their mean bold, the budget and the random level), and
+    each seed's Lagrange multiplier.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax_reward, ax_cost) = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig, (ax_reward, ax_cost, ax_multiplier) = plt.subplots(1, 3, figsize=(14, 3.8))
     n_evals = min(len(run.sim_steps) for run in runs.values())
     steps = next(iter(runs.values())).sim_steps[:n_evals]
     for ax, field, baseline, label in ((ax_reward, "rewards", random[0], "reward"), (ax_cost, "costs", random[1], "cost")):
@@ -273,14 +293,17 @@ def plot_seeds(path: Path, runs: dict[int, RunResults], random: tuple[np.ndarray
             ax.plot(steps, values, linewidth=0.8, alpha=0.6, label=f"seed {seed}")
         ax.plot(steps, means.mean(axis=0), color="black", linewidth=2.2, marker="o", label="mean over seeds")
         ax.axhline(baseline.mean(), color="gray", linestyle=":", label="random policy")
-        ax.set_xlabel("simulator steps")
-        ax.xaxis.set_major_formatter(lambda value, _: f"{value / 1000:.0f}k")
         ax.set_ylabel(f"evaluation episode {label}")
-        ax.grid(alpha=0.3)
     budget = next(iter(runs.values())).cost_limit
     ax_cost.axhline(budget, color="red", linestyle="--", label=f"budget {budget:g}")
-    ax_reward.legend(fontsize=7)
-    ax_cost.legend(fontsize=7)
+    for seed, (logged_steps, values) in multipliers.items():
+        ax_multiplier.plot(logged_steps, values, linewidth=0.8, label=f"seed {seed}")
+    ax_multiplier.set_ylabel("Lagrange multiplier (training)")
+    for ax in (ax_reward, ax_cost, ax_multiplier):
+        ax.set_xlabel("simulator steps")
+        ax.xaxis.set_major_formatter(lambda value, _: f"{value / 1000:.0f}k")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -364,7 +387,8 @@ def main() -> None:
     for seed, run in runs.items():
         write_seed_csv(out / f"seed{seed}.csv", run)
     title = f"{task_name(args.env)} ({args.obs_type}), preset {args.preset}, {len(runs)} seeds"
-    plot_seeds(out / "curves.png", runs, random, title)
+    multipliers = {seed: read_multiplier(runs_root / f"seed{seed}") for seed in args.seeds}
+    plot_seeds(out / "curves.png", runs, random, multipliers, title)
     table = summary_table(runs, random, runs_root)
     (out / "table.md").write_text(f"{title}\n\n{table}\n")
     print(f"\n{title}\n\n{table}\n\nwrote {out}/seed<S>.csv, curves.png, table.md")
