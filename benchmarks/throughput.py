@@ -4,8 +4,9 @@ batch 64 and the thesis's networks) and at the small presets ``cpu`` (PointGoal1
 (PointGoal1 state vectors), on SafetyGym/PointGoal1-v0. Prints one table:
 
 - for each update path (one update = one latent-model update + one actor-critic update, Algorithm 1): updates/s, ATen
-  ops per update and host syncs per update (``sb3_dsslac.dispatch.DispatchCounter`` over 3 updates after the warm-up,
-  the reads of Adam's step counters left out);
+  ops per update, those of them that are not views (the kernel launches on a GPU) and host syncs per update
+  (``sb3_dsslac.dispatch.DispatchCounter`` over 3 updates after the warm-up, the reads of Adam's step counters left
+  out);
 - simulator and agent steps/s of the env alone;
 - agent steps/s of real training at the thesis shapes (bursts of ``--burst`` env steps and ``--burst`` updates);
 - peak host and device memory.
@@ -136,8 +137,9 @@ def measure_paths(
     paths: dict[str, tuple[DSSLAC, Callable[[int], Any]]], n_updates: int, rounds: int, device: th.device
 ) -> tuple[list[str], dict[str, float]]:
     """
-    Table rows of updates/s (and the ratio to the first path), ATen ops per update and host syncs per update of each
-    path ``label: (model, run)``, ``run(n)`` running ``n`` updates of ``model``; and the updates/s by label.
+    Table rows of updates/s (and the ratio to the first path), ATen ops per update (all, and not views) and host syncs
+    per update of each path ``label: (model, run)``, ``run(n)`` running ``n`` updates of ``model``; and the updates/s
+    by label.
 
     Each path first runs one untimed update (allocations, cuDNN autotuning, compilation), then 3 updates under a
     ``DispatchCounter`` (the reads of the optimizers' step counters, host tensors that wait for nothing, left out),
@@ -150,7 +152,7 @@ def measure_paths(
         run_updates(1)
         with DispatchCounter(ignore_sync_of=optimizer_step_tensors(model)) as counter:
             run_updates(3)
-        dispatched[label] = counter.ops / 3, counter.syncs / 3
+        dispatched[label] = counter.ops / 3, counter.kernel_ops / 3, counter.syncs / 3
     rates: dict[str, list[float]] = {label: [] for label in paths}
     per_round = max(1, n_updates // rounds)
     for _ in range(rounds):
@@ -164,8 +166,8 @@ def measure_paths(
     first = next(iter(medians.values()))
     rows = []
     for label, rate in medians.items():
-        ops, syncs = dispatched[label]
-        rows.append(f"| {label} | {rate:.2f} | {rate / first:.2f}x | {ops:,.0f} | {syncs:.1f} |")
+        ops, kernel_ops, syncs = dispatched[label]
+        rows.append(f"| {label} | {rate:.2f} | {rate / first:.2f}x | {ops:,.0f} | {kernel_ops:,.0f} | {syncs:.1f} |")
         print(rows[-1], flush=True)  # as it comes, for runs under a timeout
     return rows, medians
 
@@ -291,7 +293,10 @@ def main() -> None:
         del paths
 
     name = th.cuda.get_device_name(device) if device.type == "cuda" else f"{cpu_model()}, {th.get_num_threads()} torch threads"
-    header = ["| update path | updates/s | vs first row | ops/update | syncs/update |", "|---|---:|---:|---:|---:|"]
+    header = [
+        "| update path | updates/s | vs first row | ops/update | of them not views | syncs/update |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
     thesis_setup = (
         f" Thesis shapes (64x64, L=10, batches 32 + 64, buffer of {args.buffer_size:,} frames): {args.updates} timed updates "
         f"per path in {args.rounds} rounds (median)."

@@ -37,7 +37,7 @@ class LatentActor(nn.Module):
         mean, log_std = self._mean_log_std(z)
         if deterministic:
             return torch.tanh(mean)
-        return torch.tanh(mean + log_std.exp() * torch.randn_like(mean))
+        return torch.tanh(torch.addcmul(mean, log_std.exp(), torch.randn_like(mean)))
 
     def action_log_prob(self, z: Tensor) -> tuple[Tensor, Tensor]:
         """
@@ -48,7 +48,7 @@ class LatentActor(nn.Module):
         """
         mean, log_std = self._mean_log_std(z)
         noise = torch.randn_like(mean)
-        pre_tanh = mean + log_std.exp() * noise
+        pre_tanh = torch.addcmul(mean, log_std.exp(), noise)
         gaussian_log_prob = -0.5 * noise.pow(2) - log_std - _HALF_LOG_2PI
         # log(1 - tanh(x)^2) = 2 * (log 2 - x - softplus(-2x))
         log_det = 2.0 * (math.log(2.0) - pre_tanh - F.softplus(-2.0 * pre_tanh))

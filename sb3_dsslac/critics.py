@@ -101,7 +101,8 @@ def sample_taus(batch_size: int, n_quantiles: int, device: torch.device | str, r
     """
     if not 0.0 < risk_level <= 1.0:
         raise ValueError(f"risk_level must be in (0, 1], got {risk_level}")
-    return 1.0 - risk_level + risk_level * torch.rand(batch_size, n_quantiles, device=device)
+    uniform = torch.rand(batch_size, n_quantiles, device=device)
+    return uniform if risk_level == 1.0 else 1.0 - risk_level + risk_level * uniform
 
 
 class MeanCostCritic(nn.Module):

@@ -1,10 +1,11 @@
 """
-Counting what a piece of PyTorch code dispatches: every ATen op (each one a kernel launch or more on a GPU, and
-Python and dispatcher overhead on any device) and every host sync (a tensor's value read back to Python).
+Counting what a piece of PyTorch code dispatches: every ATen op (Python and dispatcher overhead on any device), the
+view ops among them (``t``, ``view``, ``slice``...: new metadata on the same memory, no kernel on any device), so
+that the others are the kernel launches on a GPU, and every host sync (a tensor's value read back to Python).
 
     with DispatchCounter(ignore_sync_of=optimizer_step_tensors(model)) as counter:
         model.train(gradient_steps=3, batch_size=model.batch_size)
-    counter.ops / 3, counter.syncs / 3, counter.top(8)
+    counter.ops / 3, counter.kernel_ops / 3, counter.syncs / 3, counter.top(8)
 """
 
 from collections import Counter
@@ -20,8 +21,9 @@ _SYNC_OP = th.ops.aten._local_scalar_dense
 
 class DispatchCounter(TorchDispatchMode):
     """
-    A context manager that counts the ATen ops dispatched inside it, by overload packet (``"aten.mm"``), and the host
-    syncs among them (``aten._local_scalar_dense``). Counts add up over every ``with`` block of one counter; nested
+    A context manager that counts the ATen ops dispatched inside it, by overload packet (``"aten.mm"``), the view ops
+    among them (those whose schema says their output aliases an input: ``OpOverload.is_view``) and the host syncs
+    (``aten._local_scalar_dense``). Counts add up over every ``with`` block of one counter; nested
     counters each count the ops of the inner block.
 
     Code compiled by ``torch.compile`` runs compiled inside it (the mode is off while Dynamo traces and Inductor
@@ -38,6 +40,7 @@ class DispatchCounter(TorchDispatchMode):
         self._ignored_ids = {id(tensor) for tensor in ignored}
         self._ignored_ptrs = {tensor.data_ptr() for tensor in ignored if tensor.numel() > 0}
         self.op_counts: Counter[str] = Counter()
+        self.view_ops = 0
         self.syncs = 0
         self.ignored_syncs = 0
 
@@ -48,6 +51,7 @@ class DispatchCounter(TorchDispatchMode):
 
     def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
         self.op_counts[str(func.overloadpacket)] += 1
+        self.view_ops += func.is_view
         if func.overloadpacket is _SYNC_OP:
             if self._is_ignored(args[0]):
                 self.ignored_syncs += 1
@@ -62,6 +66,11 @@ class DispatchCounter(TorchDispatchMode):
     def ops(self) -> int:
         """ATen ops dispatched in all, the syncs included."""
         return sum(self.op_counts.values())
+
+    @property
+    def kernel_ops(self) -> int:
+        """The ops that are not views: each one launches at least one kernel on a GPU."""
+        return self.ops - self.view_ops
 
     def top(self, n: int = 10) -> list[tuple[str, int]]:
         """The ``n`` most dispatched ops as ``(name, count)``, most first."""

@@ -557,14 +557,17 @@ class DSSLAC(OffPolicyAlgorithm):
     # Losses checked for NaN/inf on the device during a burst, in this order (see ``_raise_if_not_finite``)
     _GUARDED_LOSSES = ("latent_loss", "critic_loss", "cost_critic_loss", "actor_loss", "ent_coef_loss")
 
-    def _record_finite(self, name: str, loss: th.Tensor) -> None:
+    def _record_finite(self, losses: dict[str, th.Tensor]) -> None:
         """
-        Note on the device, without reading it, the first update of this burst whose ``name`` loss is NaN or inf; the
-        burst reads the notes once, at its end (``_raise_if_not_finite``).
+        Note on the device, without reading it, the first update of this burst in which each guarded loss of
+        ``losses`` (detached scalars; the guarded ones present must lead ``_GUARDED_LOSSES``) is NaN or inf: one check
+        for all of them. The burst reads the notes once, at its end (``_raise_if_not_finite``).
         """
-        index = self._GUARDED_LOSSES.index(name)
-        first = self._first_nonfinite_update[index]
-        first.copy_(th.where((first < 0) & ~th.isfinite(loss.detach()), self._burst_update_index, first))
+        names = [name for name in self._GUARDED_LOSSES if name in losses]
+        assert tuple(names) == self._GUARDED_LOSSES[: len(names)], names
+        first = self._first_nonfinite_update[: len(names)]
+        not_finite = ~th.isfinite(th.stack([losses[name] for name in names]))
+        first.copy_(th.where((first < 0) & not_finite, self._burst_update_index, first))
 
     def _raise_if_not_finite(self, first_nonfinite: np.ndarray) -> None:
         """Stop training, naming the loss and the update, when a burst noted a NaN or inf loss."""
@@ -644,7 +647,9 @@ class DSSLAC(OffPolicyAlgorithm):
             self._begin_burst()
             history = defaultdict(list)
             for k in range(n_updates):
-                history["latent_loss"].append(self._latent_update(self.replay_buffer.gather(indices[k]))["latent_loss"])
+                stats = self._latent_update(self.replay_buffer.gather(indices[k]))
+                self._record_finite(stats)
+                history["latent_loss"].append(stats["latent_loss"])
                 self._burst_update_index.add_(1)
             losses = [*losses, *history["latent_loss"]][-100:]
             self._end_burst(history)
@@ -664,7 +669,6 @@ class DSSLAC(OffPolicyAlgorithm):
             loss, parts = self.policy.latent.loss(
                 observations, batch.actions, batch.rewards, batch.costs, batch.terminated, features=features
             )
-        self._record_finite("latent_loss", loss)
         self._step(self.policy.latent_optimizer, loss, self.max_grad_norm)
         return {"latent_loss": loss.detach(), **parts}
 
@@ -714,6 +718,7 @@ class DSSLAC(OffPolicyAlgorithm):
                     latents = latent.latents_from_features(features[:batch_size], ac_batch.actions)
             stats = self._latent_update(latent_batch, features=latent_features)
         stats.update(self._actor_critic_update(ac_batch, latents.float()))
+        self._record_finite(stats)
         self._burst_update_index.add_(1)
         return stats
 
@@ -763,7 +768,6 @@ class DSSLAC(OffPolicyAlgorithm):
 
         q_values = policy.critic(z, actions)  # (2, B, 1)
         critic_loss = (q_values - target_q).pow(2).mean(dim=(1, 2)).sum()  # MSE of each network, summed
-        self._record_finite("critic_loss", critic_loss)
         self._step(policy.critic_optimizer, critic_loss, self.max_grad_norm)
 
         taus = sample_taus(n, self.n_quantiles, self.device)
@@ -772,7 +776,6 @@ class DSSLAC(OffPolicyAlgorithm):
             cost_critic_loss = F.mse_loss(current_quantiles[:, :1], target_quantiles[:, :1])
         else:
             cost_critic_loss = quantile_huber_loss(current_quantiles, target_quantiles, cum_prob=taus.unsqueeze(-1))
-        self._record_finite("cost_critic_loss", cost_critic_loss)
         self._step(policy.cost_critic_optimizer, cost_critic_loss, self.max_grad_norm, self._cost_critic_clip_groups)
 
         # The actor's gradients are taken for its own parameters only: the critics' weights get none
@@ -781,7 +784,6 @@ class DSSLAC(OffPolicyAlgorithm):
         actor_taus = sample_taus(n, self.n_quantiles, self.device, risk_level=self.cvar_risk_level)
         cost_value = policy.cost_critic(z, pi_actions, actor_taus).mean(dim=1, keepdim=True)
         actor_loss = (ent_coef * log_prob.unsqueeze(-1) - q_pi + multiplier * cost_value).mean()
-        self._record_finite("actor_loss", actor_loss)
         self._step(policy.actor_optimizer, actor_loss, self.actor_max_grad_norm)
 
         stats = {
@@ -805,7 +807,6 @@ class DSSLAC(OffPolicyAlgorithm):
                 self._lagrange_raw_device.copy_(raw)
         if self.ent_coef_optimizer is not None:
             ent_coef_loss = -(self.log_ent_coef * (log_prob.detach() + self.target_entropy)).mean()
-            self._record_finite("ent_coef_loss", ent_coef_loss)
             self._step(self.ent_coef_optimizer, ent_coef_loss, self.max_grad_norm)
             stats["ent_coef_loss"] = ent_coef_loss.detach()
 

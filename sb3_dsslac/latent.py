@@ -55,8 +55,9 @@ def gaussian_kl(mean_q: Tensor, std_q: Tensor, mean_p: Tensor, std_p: Tensor) ->
 
 def gaussian_nll(x: Tensor, mean: Tensor, std: Tensor | float) -> Tensor:
     """Elementwise ``-log N(x | mean, std^2)``."""
-    log_std = math.log(std) if isinstance(std, float) else torch.log(std)
-    return 0.5 * ((x - mean) / std).pow(2) + log_std + _HALF_LOG_2PI
+    if isinstance(std, float):  # the constants folded: four ops instead of six
+        return (x - mean).square().mul(0.5 / std**2).add(math.log(std) + _HALF_LOG_2PI)
+    return 0.5 * ((x - mean) / std).pow(2) + torch.log(std) + _HALF_LOG_2PI
 
 
 class GaussianMLP(nn.Module):
@@ -219,21 +220,21 @@ class LatentModel(nn.Module):
 
     def posterior(self, features: Tensor, actions: Tensor) -> LatentRollout:
         """Reparameterised posterior rollout: features (B, T+1, F), actions (B, T, A) -> fields (B, T+1, dim)."""
-        # Every step's inputs and noise cut out at once (a few ops instead of some per step)
+        # Every step's inputs and noise cut out at once (a few ops instead of some per step); each sample one addcmul
         frames, step_actions = features.unbind(1), actions.unbind(1)
         z1_noise = torch.randn(features.shape[1], features.shape[0], self.z1_dim, device=features.device, dtype=features.dtype)
         z2_noise = torch.randn(features.shape[1], features.shape[0], self.z2_dim, device=features.device, dtype=features.dtype)
         z1_noise, z2_noise = z1_noise.unbind(0), z2_noise.unbind(0)
         z1_mean, z1_std = self.z1_posterior_init(frames[0])
-        z1 = z1_mean + z1_std * z1_noise[0]
+        z1 = torch.addcmul(z1_mean, z1_std, z1_noise[0])
         z2_mean, z2_std = self.z2_init(z1)
-        z2 = z2_mean + z2_std * z2_noise[0]
+        z2 = torch.addcmul(z2_mean, z2_std, z2_noise[0])
         means, stds, z1s, z2s = [z1_mean], [z1_std], [z1], [z2]
         for t in range(1, len(frames)):
             z1_mean, z1_std = self.z1_posterior(frames[t], z2, step_actions[t - 1])
-            z1 = z1_mean + z1_std * z1_noise[t]
+            z1 = torch.addcmul(z1_mean, z1_std, z1_noise[t])
             z2_mean, z2_std = self.z2_transition(z1, z2, step_actions[t - 1])
-            z2 = z2_mean + z2_std * z2_noise[t]
+            z2 = torch.addcmul(z2_mean, z2_std, z2_noise[t])
             means.append(z1_mean)
             stds.append(z1_std)
             z1s.append(z1)
@@ -295,10 +296,10 @@ class LatentModel(nn.Module):
 
         # log(p + 1e-6) and log(1 - p + 1e-6) from the logit without cancellation: logaddexp(log p, log 1e-6).
         logits = self.cost_decoder(transitions).squeeze(-1)
-        log_p = torch.logaddexp(F.logsigmoid(logits), torch.full_like(logits, _LOG_COST_EPS))
-        log_not_p = torch.logaddexp(F.logsigmoid(-logits), torch.full_like(logits, _LOG_COST_EPS))
-        unsafe = (costs > 0).to(logits.dtype)
-        cost_ll = self.cost_positive_weight * unsafe * log_p + (1.0 - unsafe) * log_not_p
+        log_eps = logits.new_full((), _LOG_COST_EPS)
+        log_p = torch.logaddexp(F.logsigmoid(logits), log_eps)
+        log_not_p = torch.logaddexp(F.logsigmoid(-logits), log_eps)
+        cost_ll = torch.where(costs > 0, self.cost_positive_weight * log_p, log_not_p)
         cost_loss = -self.cost_loss_weight * cost_ll.sum(dim=1).mean()
 
         total = kl + image_loss + reward_loss + cost_loss

@@ -21,6 +21,15 @@ def test_counts_a_matmul_and_an_add_as_two_ops_and_no_sync() -> None:
     assert counter.syncs == 0
 
 
+def test_views_are_counted_apart_from_the_ops_that_launch_kernels() -> None:
+    a, b = th.randn(3, 4), th.randn(5, 4)
+    with DispatchCounter() as counter:
+        y = th.nn.functional.linear(a, b)  # t (a view) and mm
+        y.view(15)[2:].unsqueeze(0).add(1.0)  # three views and an add
+    assert counter.ops == 6
+    assert (counter.view_ops, counter.kernel_ops) == (4, 2)
+
+
 def test_every_value_read_is_one_sync() -> None:
     x = th.tensor([1.5])
     with DispatchCounter() as counter:

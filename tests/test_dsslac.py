@@ -223,12 +223,25 @@ def test_env_without_time_limit_needs_episode_length() -> None:
     assert small_model(limited).cost_budget_per_step == pytest.approx(25.0 / 20)
 
 
-def test_nan_loss_stops_training_and_names_the_loss() -> None:
-    model = small_model(HazardPointEnv())
+@pytest.mark.parametrize(
+    ("network", "ent_coef", "loss"),
+    [("critic", "auto", "critic_loss"), ("critic", 0.1, "critic_loss"), ("latent", "auto", "latent_loss")],
+)
+def test_nan_loss_stops_training_and_names_the_loss(network: str, ent_coef, loss: str) -> None:
+    model = small_model(HazardPointEnv(), ent_coef=ent_coef)
     model.learn(45)
     with th.no_grad():
-        next(model.policy.critic.parameters()).fill_(float("nan"))
-    with pytest.raises(RuntimeError, match="critic_loss"):
+        next(getattr(model.policy, network).parameters()).fill_(float("nan"))
+    with pytest.raises(RuntimeError, match=f"DS-SLAC's {loss} became NaN or inf at update {model._n_updates} "):
+        model.train(gradient_steps=3, batch_size=8)
+
+
+def test_nan_in_the_latent_pretraining_names_the_latent_loss() -> None:
+    model = small_model(HazardPointEnv(), learning_starts=1000)
+    model.learn(50)
+    with th.no_grad():
+        next(model.policy.latent.parameters()).fill_(float("nan"))
+    with pytest.raises(RuntimeError, match="latent_loss became NaN or inf at update 0 "):
         model.train(gradient_steps=1, batch_size=8)
 
 
