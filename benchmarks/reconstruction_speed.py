@@ -1,0 +1,88 @@
+"""
+How many latent-model updates does a preset need before its reconstructions hold the hazards and the goal? Latent
+training alone (no actor-critic) on a buffer of random-policy pixel frames, probed after each of ``--checkpoints``
+updates: the mean absolute reconstruction error (in [0, 1]) of the filter's beliefs along three deterministic
+evaluation episodes, over the hazard pixels (blue), the goal pixels (green) and all pixels, and a ``beliefs.png``
+of the first episode at each checkpoint.
+
+    python benchmarks/reconstruction_speed.py                                  # cpu_pixels, 20k random steps
+    python benchmarks/reconstruction_speed.py --hyperparams image_noise=0.4    # the thesis's likelihood variance
+
+One torch thread; about 6 latent updates/s at the cpu_pixels sizes on a 2-core AMD EPYC shared with two other jobs.
+"""
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch as th
+from machine import cpu_model
+
+from sb3_dsslac import DSSLAC
+from sb3_dsslac.beliefs import EpisodeBeliefs, episode_beliefs, plot_beliefs
+from sb3_dsslac.envs import make_env
+from sb3_dsslac.presets import preset_hyperparams
+from sb3_dsslac.runs import parse_hyperparams
+
+
+def object_masks(frames: np.ndarray) -> dict[str, np.ndarray]:
+    """(T, H, W, 3) uint8 frames -> boolean (T, H, W) masks of the hazard (blue) and goal (green) pixels."""
+    red, green, blue = np.moveaxis(frames.astype(np.float32) / 255.0, -1, 0)
+    return {
+        "hazard": (blue > red + 0.2) & (blue > green + 0.2),
+        "goal": (green > red + 0.15) & (green > blue + 0.15),
+    }
+
+
+def reconstruction_errors(episodes: list[EpisodeBeliefs]) -> dict[str, float | None]:
+    """Mean absolute error of the reconstructions over hazard, goal and all pixels (None where none was seen)."""
+    errors: dict[str, list[float]] = {"hazard": [], "goal": [], "all": []}
+    for beliefs in episodes:
+        error = np.abs(beliefs.frames.astype(np.float32) - beliefs.reconstructions.astype(np.float32)).mean(-1) / 255.0
+        for name, mask in object_masks(beliefs.frames).items():
+            if mask.any():
+                errors[name].append(float(error[mask].mean()))
+        errors["all"].append(float(error.mean()))
+    return {name: round(float(np.mean(values)), 3) if values else None for name, values in errors.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="SafetyGym/PointGoal1-v0")
+    parser.add_argument("--preset", default="cpu_pixels")
+    parser.add_argument("--hyperparams", nargs="*", default=[], metavar="KEY=VALUE", help="DSSLAC keywords (YAML)")
+    parser.add_argument("--random-steps", type=int, default=20_000, help="agent steps of random-policy frames")
+    parser.add_argument("--checkpoints", type=int, nargs="+", default=[1000, 2000, 4000, 7000, 10000, 14000, 20000])
+    parser.add_argument("--episode-steps", type=int, default=150, help="agent steps of each probe episode")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/reconstruction_speed"))
+    args = parser.parse_args()
+    if sorted(args.checkpoints) != args.checkpoints or args.checkpoints[0] < 1:
+        raise SystemExit("--checkpoints must be increasing positive update counts")
+    th.set_num_threads(1)
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    hyperparams = preset_hyperparams(args.preset, parse_hyperparams(args.hyperparams))
+    # One rollout of random steps, then a single actor-critic update; the latent updates come below
+    hyperparams.update(learning_starts=args.random_steps, train_freq=args.random_steps + 1, gradient_steps=1)
+    hyperparams.update(latent_pretrain_steps=0, buffer_size=args.random_steps + 1)
+    model = DSSLAC("LatentPolicy", make_env(args.env, "pixels"), seed=0, verbose=0, **hyperparams)
+    model.learn(args.random_steps + 1)
+    print(f"{args.env}, preset {args.preset} {parse_hyperparams(args.hyperparams) or ''}, {cpu_model()}, one thread")
+    done = 0
+    for target in args.checkpoints:
+        n_updates = target - done
+        model.latent_pretrain_steps = n_updates
+        start = time.perf_counter()
+        model._pretrain_latent()  # the latent model's own updates, as in the pre-training
+        seconds = time.perf_counter() - start
+        done = target
+        episodes = [episode_beliefs(model, args.env, seed=10_000 + index, max_steps=args.episode_steps) for index in range(3)]
+        plot_beliefs(episodes[0], args.out / f"beliefs_{done}.png", title=f"after {done:,} latent updates")
+        row = {"latent_updates": done, "updates_per_s": round(n_updates / seconds, 2)}
+        print(json.dumps({**row, "mean_abs_error": reconstruction_errors(episodes)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
