@@ -228,7 +228,7 @@ def main() -> None:
     )
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     parser.add_argument("--buffer-size", type=int, default=200_000, help="replay buffer frames (the thesis's 200k)")
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results"))
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results"), help="folder of the table")
     args = parser.parse_args()
     device = th.device(args.device)
     quick_updates = 20 if device.type == "cuda" else 1
