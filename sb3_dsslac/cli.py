@@ -180,14 +180,20 @@ def _plot_command(args: argparse.Namespace) -> None:
     print(report(args.runs, args.out))
 
 
-def _evaluate_command(args: argparse.Namespace) -> None:
+def _model_and_run(args: argparse.Namespace) -> tuple[str, TrainConfig | None, bool]:
+    """The env id of ``args.model`` (``--env``, else its run's), its run's config if any, and whether that run used
+    this env."""
     if not Path(args.model).is_file():
         raise FileNotFoundError(f"No model file {args.model}")
     run_config = find_run_config(Path(args.model))
     if args.env is None and run_config is None:
         raise ValueError(f"{args.model} is not in a run folder: pass the env id (--env)")
     env_id = args.env or run_config.env  # type: ignore[union-attr]
-    same_env = run_config is not None and run_config.env == env_id
+    return env_id, run_config, run_config is not None and run_config.env == env_id
+
+
+def _evaluate_command(args: argparse.Namespace) -> None:
+    env_id, run_config, same_env = _model_and_run(args)
     if args.deterministic or args.stochastic:
         deterministic = args.deterministic
     else:  # the protocol of the model's run, else the thesis's
@@ -212,13 +218,7 @@ def _evaluate_command(args: argparse.Namespace) -> None:
 def _beliefs_command(args: argparse.Namespace) -> None:
     from sb3_dsslac.beliefs import episode_beliefs, mean_cost_probabilities, plot_beliefs
 
-    if not Path(args.model).is_file():
-        raise FileNotFoundError(f"No model file {args.model}")
-    run_config = find_run_config(Path(args.model))
-    if args.env is None and run_config is None:
-        raise ValueError(f"{args.model} is not in a run folder: pass the env id (--env)")
-    env_id = args.env or run_config.env  # type: ignore[union-attr]
-    same_env = run_config is not None and run_config.env == env_id
+    env_id, run_config, same_env = _model_and_run(args)
     model = DSSLAC.load(args.model, device=args.device)
     beliefs = episode_beliefs(
         model,
