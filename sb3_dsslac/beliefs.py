@@ -59,8 +59,8 @@ def episode_beliefs(
         done, steps = False, 0
         with th.inference_mode():
             while True:
-                obs_tensor = th.as_tensor(np.asarray(observation), device=policy.device).permute(2, 0, 1).unsqueeze(0)
-                z, z2 = policy.belief_step(obs_tensor, z2, action, start, deterministic)
+                obs_tensor, _ = policy.obs_to_tensor(observation)  # SB3's: channels first, batch of one, on the device
+                z, z2 = policy.belief_step(obs_tensor, z2, action, start, deterministic)  # type: ignore[arg-type]
                 frames.append(np.asarray(observation))
                 reconstructions.append(_to_uint8_image(policy.latent.decode(z.unsqueeze(1))[0, 0]))
                 if transitions:
