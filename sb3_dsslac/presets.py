@@ -85,9 +85,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     # - the thesis's multiplier (init 0.02, lr 2e-4), as cpu_learning: faster ones shut the agent down there
     "cpu_pixels": {
         "image_noise": 0.1,
-        "latent_learning_rate": 3e-4,
-        "learning_starts": 5_000,
-        "latent_pretrain_steps": 1_000,
+        "latent_learning_rate": 1e-3,
+        "learning_starts": 10_000,
+        "latent_pretrain_steps": 5_000,
         "batch_size": 32,
         "latent_batch_size": 16,
         "sequence_length": 4,
