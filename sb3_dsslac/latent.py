@@ -9,6 +9,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from sb3_dsslac.fused_rollout import STD_EPS, posterior_steps
+
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 _LOG_COST_EPS = math.log(1e-6)
 
@@ -71,7 +73,7 @@ class GaussianMLP(nn.Module):
         """Inputs (..., d_k) concatenated on the last dim -> (mean, std), each (..., output_dim)."""
         x = torch.cat(inputs, dim=-1) if len(inputs) > 1 else inputs[0]
         mean, raw_std = self.net(x).chunk(2, dim=-1)
-        return mean, F.softplus(raw_std) + 1e-5
+        return mean, F.softplus(raw_std) + STD_EPS
 
 
 class LatentRollout(NamedTuple):
@@ -220,28 +222,43 @@ class LatentModel(nn.Module):
 
     def posterior(self, features: Tensor, actions: Tensor) -> LatentRollout:
         """Reparameterised posterior rollout: features (B, T+1, F), actions (B, T, A) -> fields (B, T+1, dim)."""
-        # Every step's inputs and noise cut out at once (a few ops instead of some per step); each sample one addcmul
-        frames, step_actions = features.unbind(1), actions.unbind(1)
-        z1_noise = torch.randn(features.shape[1], features.shape[0], self.z1_dim, device=features.device, dtype=features.dtype)
-        z2_noise = torch.randn(features.shape[1], features.shape[0], self.z2_dim, device=features.device, dtype=features.dtype)
-        z1_noise, z2_noise = z1_noise.unbind(0), z2_noise.unbind(0)
-        z1_mean, z1_std = self.z1_posterior_init(frames[0])
+        batch, frames = features.shape[:2]
+        z1_noise = torch.randn(frames, batch, self.z1_dim, device=features.device, dtype=features.dtype)
+        z2_noise = torch.randn(frames, batch, self.z2_dim, device=features.device, dtype=features.dtype)
+        z1_mean, z1_std = self.z1_posterior_init(features[:, 0])
         z1 = torch.addcmul(z1_mean, z1_std, z1_noise[0])
         z2_mean, z2_std = self.z2_init(z1)
         z2 = torch.addcmul(z2_mean, z2_std, z2_noise[0])
-        means, stds, z1s, z2s = [z1_mean], [z1_std], [z1], [z2]
-        for t in range(1, len(frames)):
-            z1_mean, z1_std = self.z1_posterior(frames[t], z2, step_actions[t - 1])
-            z1 = torch.addcmul(z1_mean, z1_std, z1_noise[t])
-            z2_mean, z2_std = self.z2_transition(z1, z2, step_actions[t - 1])
-            z2 = torch.addcmul(z2_mean, z2_std, z2_noise[t])
+        first = (z1_mean, z1_std, z1, z2)
+        if frames == 1:
+            return LatentRollout(*(value.unsqueeze(1) for value in first))
+        if torch.compiler.is_compiling() or torch.is_autocast_enabled(features.device.type):
+            # The compiler differentiates (and fuses) the steps itself; autocast picks each op's dtype as autograd records it
+            return self._posterior_steps(features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:])
+        return LatentRollout(
+            *posterior_steps(
+                features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:], self.z1_posterior, self.z2_transition
+            )
+        )
+
+    def _posterior_steps(
+        self, features: Tensor, actions: Tensor, first: tuple[Tensor, ...], z1_noise: Tensor, z2_noise: Tensor
+    ) -> LatentRollout:
+        """``posterior_steps`` step by step, recorded by autograd."""
+        means, stds, z1s, z2s = ([value] for value in first)
+        z2 = first[3]
+        for feature, action, z1_eps, z2_eps in zip(
+            features.unbind(1), actions.unbind(1), z1_noise.unbind(0), z2_noise.unbind(0), strict=True
+        ):
+            z1_mean, z1_std = self.z1_posterior(feature, z2, action)
+            z1 = torch.addcmul(z1_mean, z1_std, z1_eps)
+            z2_mean, z2_std = self.z2_transition(z1, z2, action)
+            z2 = torch.addcmul(z2_mean, z2_std, z2_eps)
             means.append(z1_mean)
             stds.append(z1_std)
             z1s.append(z1)
             z2s.append(z2)
-        return LatentRollout(
-            torch.stack(means, dim=1), torch.stack(stds, dim=1), torch.stack(z1s, dim=1), torch.stack(z2s, dim=1)
-        )
+        return LatentRollout(*(torch.stack(values, dim=1) for values in (means, stds, z1s, z2s)))
 
     def _check_sequence(self, observations: Tensor, actions: Tensor) -> None:
         if tuple(observations.shape[2:]) != self.observation_shape:
