@@ -88,9 +88,12 @@ class IQNCostCritic(nn.Module):
 
     def forward(self, z: Tensor, actions: Tensor, taus: Tensor) -> Tensor:
         """Latents (B, Z), actions (B, A) and quantile fractions (B, N) in [0, 1] -> quantiles (B, N)."""
-        tau_embedding = F.relu(self.cosine_net(torch.cos(taus.unsqueeze(-1) * self.cosine_frequencies)))  # (B, N, Z+A)
+        batch, n_taus = taus.shape
+        # (B * N) rows through the layers: a linear layer on (B, N, .) adds two views each way
+        tau_embedding = F.relu(self.cosine_net(torch.cos(taus.reshape(-1, 1) * self.cosine_frequencies)))
         x = torch.cat([z, actions], dim=-1).unsqueeze(1)  # (B, 1, Z+A)
-        return self.quantile_net(x * tau_embedding).squeeze(-1)
+        rows = (x * tau_embedding.view(batch, n_taus, -1)).view(batch * n_taus, -1)
+        return self.quantile_net(rows).view(batch, n_taus)
 
 
 def sample_taus(batch_size: int, n_quantiles: int, device: torch.device | str, risk_level: float = 1.0) -> Tensor:

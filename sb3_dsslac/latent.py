@@ -72,7 +72,11 @@ class GaussianMLP(nn.Module):
     def forward(self, *inputs: Tensor) -> tuple[Tensor, Tensor]:
         """Inputs (..., d_k) concatenated on the last dim -> (mean, std), each (..., output_dim)."""
         x = torch.cat(inputs, dim=-1) if len(inputs) > 1 else inputs[0]
-        mean, raw_std = self.net(x).chunk(2, dim=-1)
+        if x.dim() > 2:  # rows through the layers: a linear layer on more dims adds two views each way
+            out = self.net(x.reshape(-1, x.shape[-1])).view(*x.shape[:-1], -1)
+        else:
+            out = self.net(x)
+        mean, raw_std = out.chunk(2, dim=-1)
         return mean, F.softplus(raw_std) + STD_EPS
 
 
@@ -306,13 +310,14 @@ class LatentModel(nn.Module):
         reconstruction = self.decode(z)
         image_loss = gaussian_nll(observations, reconstruction, self.image_std).flatten(1).sum(dim=1).mean()
 
-        transitions = torch.cat([z[:, :-1], actions, z[:, 1:]], dim=-1)
+        # One row per transition (B * T, .): a linear layer on (B, T, .) adds two views each way
+        transitions = torch.cat([z[:, :-1], actions, z[:, 1:]], dim=-1).flatten(0, 1)
         reward_mean, reward_std = self.reward_decoder(transitions)
-        reward_nll = gaussian_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1))
+        reward_nll = gaussian_nll(rewards, reward_mean.view_as(rewards), reward_std.view_as(rewards))
         reward_loss = (reward_nll * (1.0 - terminated)).sum(dim=1).mean()
 
         # log(p + 1e-6) and log(1 - p + 1e-6) from the logit without cancellation: logaddexp(log p, log 1e-6).
-        logits = self.cost_decoder(transitions).squeeze(-1)
+        logits = self.cost_decoder(transitions).view_as(costs)
         log_eps = logits.new_full((), _LOG_COST_EPS)
         log_p = torch.logaddexp(F.logsigmoid(logits), log_eps)
         log_not_p = torch.logaddexp(F.logsigmoid(-logits), log_eps)
