@@ -226,6 +226,10 @@ class LatentModel(nn.Module):
 
     def posterior(self, features: Tensor, actions: Tensor) -> LatentRollout:
         """Reparameterised posterior rollout: features (B, T+1, F), actions (B, T, A) -> fields (B, T+1, dim)."""
+        compiling = torch.compiler.is_compiling()
+        mixed_precision = torch.is_autocast_enabled(features.device.type) and not compiling
+        if mixed_precision:  # the rollout's small matrix products run in float32 below; bfloat16 is for the convolutions
+            features = features.float()
         batch, frames = features.shape[:2]
         z1_noise = torch.randn(frames, batch, self.z1_dim, device=features.device, dtype=features.dtype)
         z2_noise = torch.randn(frames, batch, self.z2_dim, device=features.device, dtype=features.dtype)
@@ -236,14 +240,15 @@ class LatentModel(nn.Module):
         first = (z1_mean, z1_std, z1, z2)
         if frames == 1:
             return LatentRollout(*(value.unsqueeze(1) for value in first))
-        if torch.compiler.is_compiling() or torch.is_autocast_enabled(features.device.type):
-            # The compiler differentiates (and fuses) the steps itself; autocast picks each op's dtype as autograd records it
+        if compiling:  # the compiler differentiates (and fuses) the steps itself
             return self._posterior_steps(features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:])
-        return LatentRollout(
-            *posterior_steps(
+        if mixed_precision:
+            first = tuple(value.float() for value in first)
+        with torch.autocast(features.device.type, enabled=False):
+            steps = posterior_steps(
                 features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:], self.z1_posterior, self.z2_transition
             )
-        )
+        return LatentRollout(*steps)
 
     def _posterior_steps(
         self, features: Tensor, actions: Tensor, first: tuple[Tensor, ...], z1_noise: Tensor, z2_noise: Tensor

@@ -78,3 +78,15 @@ def test_latent_loss_is_the_same_through_the_fused_and_the_autograd_rollout() ->
     torch.testing.assert_close(fused_loss, reference_loss)
     for fused_grad, reference_grad in zip(fused_grads, reference_grads, strict=True):
         torch.testing.assert_close(fused_grad, reference_grad, rtol=1e-9, atol=1e-9)
+
+
+def test_under_bfloat16_autocast_the_rollout_runs_fused_in_float32() -> None:
+    torch.manual_seed(4)
+    model = LatentModel((9,), 2, feature_dim=6, z1_dim=3, z2_dim=4, hidden_units=(8, 8))
+    features = torch.randn(2, 5, 6, requires_grad=True)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        rollout = model.posterior(features.bfloat16(), torch.rand(2, 4, 2))
+    assert all(field.dtype == torch.float32 for field in rollout)
+    assert type(rollout.z2.grad_fn).__name__ == "_PosteriorStepsBackward"
+    rollout.z2.sum().backward()
+    assert features.grad is not None and model.z1_posterior_init.net[0].weight.grad is not None
