@@ -45,6 +45,23 @@ def _layer_pairs(params: list[Tensor]) -> list[tuple[Tensor, Tensor]]:
     return list(zip(params[::2], params[1::2], strict=True))
 
 
+def _mlp_forward(
+    hidden: Tensor, layers: list[tuple[Tensor, Tensor]], kept: list[list[Tensor]], out_dim: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """
+    One step's forward pass through an MLP from its first layer's pre-activation (B, H), noting each hidden output in
+    ``kept``: the mean, the raw std and ``std = softplus(raw) + 1e-5``, each (B, out_dim).
+
+    :param layers: the transposed weight (in, out) and the bias of each layer after the first
+    """
+    for layer, (weight_t, bias) in enumerate(layers):
+        hidden = F.elu(hidden)
+        kept[layer].append(hidden)
+        hidden = torch.addmm(bias, hidden, weight_t)
+    mean, raw = hidden.split(out_dim, dim=1)
+    return mean, raw, F.softplus(raw) + STD_EPS
+
+
 def _rollout(
     features: Tensor,
     actions: Tensor,
@@ -85,23 +102,13 @@ def _rollout(
     for posterior_in, transition_action, z1_eps, z2_eps in zip(
         posterior_inputs.split(batch), transition_inputs.split(batch), z1_noise.unbind(0), z2_noise.unbind(0), strict=True
     ):
-        hidden = torch.addmm(posterior_in, z2, posterior_recurrent)
-        for layer, (weight_t, bias) in enumerate(posterior_layers):
-            hidden = F.elu(hidden)
-            posterior_hidden[layer].append(hidden)
-            hidden = torch.addmm(bias, hidden, weight_t)
-        z1_mean, raw = hidden.split(z1_dim, dim=1)
-        z1_std = F.softplus(raw) + STD_EPS
+        pre_activation = torch.addmm(posterior_in, z2, posterior_recurrent)
+        z1_mean, raw, z1_std = _mlp_forward(pre_activation, posterior_layers, posterior_hidden, z1_dim)
         z1 = torch.addcmul(z1_mean, z1_std, z1_eps)
-
         pair = torch.cat([z1, z2], dim=1)
-        hidden = torch.addmm(transition_action, pair, transition_recurrent)
-        for layer, (weight_t, bias) in enumerate(transition_layers):
-            hidden = F.elu(hidden)
-            transition_hidden[layer].append(hidden)
-            hidden = torch.addmm(bias, hidden, weight_t)
-        z2_mean, raw2 = hidden.split(z2_dim, dim=1)
-        z2 = torch.addcmul(z2_mean, F.softplus(raw2) + STD_EPS, z2_eps)
+        pre_activation = torch.addmm(transition_action, pair, transition_recurrent)
+        z2_mean, raw2, z2_std = _mlp_forward(pre_activation, transition_layers, transition_hidden, z2_dim)
+        z2 = torch.addcmul(z2_mean, z2_std, z2_eps)
 
         for output, value in zip(outputs, (z1_mean, z1_std, z1, z2), strict=True):
             output.append(value)
