@@ -84,14 +84,16 @@ def _rollout(
     z1_dim, z2 = z1_noise.shape[-1], first[3]
     z2_dim = z2.shape[-1]
     rows_features = features.transpose(0, 1).reshape(steps * batch, feature_dim)
-    rows_actions = actions.transpose(0, 1).reshape(steps * batch, actions.shape[-1])
-    first_weight = posterior_params[0]
+    action_dim = actions.shape[-1]
+    rows_actions = actions.transpose(0, 1).reshape(steps * batch, action_dim)
+    # The first layers' weights by input: [feature, z2_prev, action] and [z1 and z2_prev, action]
+    posterior_feature, posterior_z2, posterior_action = posterior_params[0].split([feature_dim, z2_dim, action_dim], 1)
+    transition_pair, transition_action = transition_params[0].split([z1_dim + z2_dim, action_dim], 1)
     # The parts of the first layers that do not recur, for all steps at once
-    posterior_inputs = torch.addmm(posterior_params[1], rows_features, first_weight[:, :feature_dim].t())
-    posterior_inputs = torch.addmm(posterior_inputs, rows_actions, first_weight[:, feature_dim + z2_dim :].t())
-    transition_inputs = torch.addmm(transition_params[1], rows_actions, transition_params[0][:, z1_dim + z2_dim :].t())
-    posterior_recurrent = first_weight[:, feature_dim : feature_dim + z2_dim].t()
-    transition_recurrent = transition_params[0][:, : z1_dim + z2_dim].t()
+    posterior_inputs = torch.addmm(posterior_params[1], rows_features, posterior_feature.t())
+    posterior_inputs = torch.addmm(posterior_inputs, rows_actions, posterior_action.t())
+    transition_inputs = torch.addmm(transition_params[1], rows_actions, transition_action.t())
+    posterior_recurrent, transition_recurrent = posterior_z2.t(), transition_pair.t()
     posterior_layers = [(weight.t(), bias) for weight, bias in _layer_pairs(posterior_params[2:])]
     transition_layers = [(weight.t(), bias) for weight, bias in _layer_pairs(transition_params[2:])]
 
@@ -99,14 +101,14 @@ def _rollout(
     posterior_hidden: list[list[Tensor]] = [[] for _ in posterior_layers]
     transition_hidden: list[list[Tensor]] = [[] for _ in transition_layers]
     posterior_raw, transition_in, transition_raw = [], [], []
-    for posterior_in, transition_action, z1_eps, z2_eps in zip(
+    for posterior_in, transition_in_action, z1_eps, z2_eps in zip(
         posterior_inputs.split(batch), transition_inputs.split(batch), z1_noise.unbind(0), z2_noise.unbind(0), strict=True
     ):
         pre_activation = torch.addmm(posterior_in, z2, posterior_recurrent)
         z1_mean, raw, z1_std = _mlp_forward(pre_activation, posterior_layers, posterior_hidden, z1_dim)
         z1 = torch.addcmul(z1_mean, z1_std, z1_eps)
         pair = torch.cat([z1, z2], dim=1)
-        pre_activation = torch.addmm(transition_action, pair, transition_recurrent)
+        pre_activation = torch.addmm(transition_in_action, pair, transition_recurrent)
         z2_mean, raw2, z2_std = _mlp_forward(pre_activation, transition_layers, transition_hidden, z2_dim)
         z2 = torch.addcmul(z2_mean, z2_std, z2_eps)
 
@@ -173,11 +175,10 @@ class _PosteriorSteps(torch.autograd.Function):
         transition_raw = rest[n_transition - 1].split(batch)
         params = rest[n_transition:]
         posterior_weights, transition_weights = list(params[: 2 * n_posterior : 2]), list(params[2 * n_posterior :: 2])
-        feature_dim = rows_features.shape[1]
-        # The recurrent columns of the first layers: z2_prev in z1's posterior; z1 and z2_prev in z2's transition
-        posterior_z2 = posterior_weights[0][:, feature_dim : feature_dim + z2_dim]
-        transition_z1 = transition_weights[0][:, :z1_dim]
-        transition_z2 = transition_weights[0][:, z1_dim : z1_dim + z2_dim]
+        feature_dim, action_dim = rows_features.shape[1], rows_actions.shape[1]
+        # The first layers' weights by input: [feature, z2_prev, action] and [z1, z2_prev, action]
+        posterior_feature, posterior_z2, posterior_action = posterior_weights[0].split([feature_dim, z2_dim, action_dim], 1)
+        transition_z1, transition_z2, transition_action = transition_weights[0].split([z1_dim, z2_dim, action_dim], 1)
 
         # Output index t + 1 is step t's; index 0 is the first frame's, an input passed through
         grads_z1_mean, grads_z1_std = grad_z1_mean.unbind(1), grad_z1_std.unbind(1)
@@ -223,11 +224,10 @@ class _PosteriorSteps(torch.autograd.Function):
         def per_sequence(rows: Tensor) -> Tensor:
             return rows.view(steps, batch, -1).transpose(0, 1)
 
-        grad_features = per_sequence(first_grads[0].mm(posterior_weights[0][:, :feature_dim]))
+        grad_features = per_sequence(first_grads[0].mm(posterior_feature))
         grad_actions = None
         if ctx.needs_input_grad[1]:
-            grad_actions = first_grads[0].mm(posterior_weights[0][:, feature_dim + z2_dim :])
-            grad_actions = per_sequence(grad_actions.addmm_(first_grads[1], transition_weights[0][:, z1_dim + z2_dim :]))
+            grad_actions = per_sequence(first_grads[0].mm(posterior_action).addmm_(first_grads[1], transition_action))
         first_inputs = (grads_z1_mean[0], grads_z1_std[0], grads_z1[0], grad_z2_now)
         return grad_features, grad_actions, *first_inputs, None, None, None, *param_grads
 
