@@ -4,7 +4,7 @@ import contextlib
 import math
 import warnings
 from collections import defaultdict, deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -450,8 +450,8 @@ class DSSLAC(OffPolicyAlgorithm):
             n_cosine = len(list(policy.cost_critic.cosine_net.parameters()))
             assert list(policy.cost_critic.parameters())[:n_cosine] == list(policy.cost_critic.cosine_net.parameters())
             self._cost_critic_clip_groups = (slice(0, n_cosine), slice(n_cosine, None))
-        self._compiled_gradient_step = None
-        self._compiled_once = False
+        self._compiled_steps: dict[str, Callable[..., dict[str, th.Tensor]]] = {}
+        self._compiled_once: set[str] = set()
         if self.compile_updates:
             if not hasattr(th._dynamo.config, "trace_autograd_ops"):
                 warnings.warn(
@@ -461,7 +461,10 @@ class DSSLAC(OffPolicyAlgorithm):
                 return
             # CUDA graphs on a GPU: the whole step is replayed as one graph
             mode = "reduce-overhead" if self.device.type == "cuda" else None
-            self._compiled_gradient_step = th.compile(self._gradient_step, fullgraph=True, mode=mode)
+            self._compiled_steps = {
+                step.__name__: th.compile(step, fullgraph=True, mode=mode)
+                for step in (self._gradient_step, self._last_actor_critic_step)
+            }
 
     # ----------------------------------------------------------------------------------------------------------------
     # Acting
@@ -557,17 +560,21 @@ class DSSLAC(OffPolicyAlgorithm):
     # Losses checked for NaN/inf on the device during a burst, in this order (see ``_raise_if_not_finite``)
     _GUARDED_LOSSES = ("latent_loss", "critic_loss", "cost_critic_loss", "actor_loss", "ent_coef_loss")
 
-    def _record_finite(self, losses: dict[str, th.Tensor]) -> None:
+    def _record_finite(self, losses: dict[str, th.Tensor], lag: int = 0) -> None:
         """
         Note on the device, without reading it, the first update of this burst in which each guarded loss of
-        ``losses`` (detached scalars; the guarded ones present must lead ``_GUARDED_LOSSES``) is NaN or inf: one check
-        for all of them. The burst reads the notes once, at its end (``_raise_if_not_finite``).
+        ``losses`` (detached scalars; the guarded ones present must be a run of ``_GUARDED_LOSSES``) is NaN or inf: one
+        check for all of them. The burst reads the notes once, at its end (``_raise_if_not_finite``).
+
+        :param lag: how many gradient steps before the current one the losses belong to
         """
         names = [name for name in self._GUARDED_LOSSES if name in losses]
-        assert tuple(names) == self._GUARDED_LOSSES[: len(names)], names
-        first = self._first_nonfinite_update[: len(names)]
+        start = self._GUARDED_LOSSES.index(names[0])
+        assert tuple(names) == self._GUARDED_LOSSES[start : start + len(names)], names
+        first = self._first_nonfinite_update[start : start + len(names)]
         not_finite = ~th.isfinite(th.stack([losses[name] for name in names]))
-        first.copy_(th.where((first < 0) & not_finite, self._burst_update_index, first))
+        update = self._burst_update_index - lag if lag else self._burst_update_index
+        first.copy_(th.where((first < 0) & not_finite, update, first))
 
     def _raise_if_not_finite(self, first_nonfinite: np.ndarray) -> None:
         """Stop training, naming the loss and the update, when a burst noted a NaN or inf loss."""
@@ -612,7 +619,7 @@ class DSSLAC(OffPolicyAlgorithm):
         """
         for optimizer, learning_rate in self._learning_rates.items():
             learning_rate.fill_(optimizer.param_groups[0]["lr"])
-            if self._compiled_gradient_step is not None:
+            if self._compiled_steps:
                 init_adam_state(optimizer)
         self._lagrange_raw_device.copy_(self.lagrange_raw)
         self._lagrange_learning_rate_device.fill_(self.current_lagrange_learning_rate)
@@ -647,7 +654,7 @@ class DSSLAC(OffPolicyAlgorithm):
             self._begin_burst()
             history = defaultdict(list)
             for k in range(n_updates):
-                stats = self._latent_update(self.replay_buffer.gather(indices[k]))
+                stats, _ = self._latent_update(self.replay_buffer.gather(indices[k]))
                 self._record_finite(stats)
                 history["latent_loss"].append(stats["latent_loss"])
                 self._burst_update_index.add_(1)
@@ -659,18 +666,25 @@ class DSSLAC(OffPolicyAlgorithm):
         if losses:
             self.logger.record("train/pretrain_latent_loss", float(th.stack(losses[-100:]).mean()))
 
-    def _latent_update(self, batch: SequenceBatch, features: th.Tensor | None = None) -> dict[str, th.Tensor]:
+    def _latent_update(
+        self, batch: SequenceBatch, features: th.Tensor | None = None, filter_batch: SequenceBatch | None = None
+    ) -> tuple[dict[str, th.Tensor], th.Tensor | None]:
         """
-        One latent-model update on a batch of sequences (``features``: their encoder features, if already computed);
-        returns its detached losses.
+        One latent-model update on a batch of sequences (``features``: their encoder features, if already computed).
+
+        :param filter_batch: other sequences to filter, without gradient, in the same rollout (before the update)
+        :return: the update's detached losses, and the posterior samples of ``filter_batch`` (B', L+1, z_dim) or None
         """
         with self._latent_autocast():
             observations = self.policy.preprocess(batch.observations)
-            loss, parts = self.policy.latent.loss(
-                observations, batch.actions, batch.rewards, batch.costs, batch.terminated, features=features
+            other = None
+            if filter_batch is not None:
+                other = (self.policy.preprocess(filter_batch.observations), filter_batch.actions)
+            loss, parts, latents = self.policy.latent.loss_and_filter(
+                observations, batch.actions, batch.rewards, batch.costs, batch.terminated, features=features, other=other
             )
         self._step(self.policy.latent_optimizer, loss, self.max_grad_norm)
-        return {"latent_loss": loss.detach(), **parts}
+        return {"latent_loss": loss.detach(), **parts}, latents
 
     def _step(
         self,
@@ -689,23 +703,32 @@ class DSSLAC(OffPolicyAlgorithm):
             grads[group] = clip_grads(grads[group], max_grad_norm)
         adam_step(optimizer, grads, self._learning_rates[optimizer])
 
-    def _gradient_step(self, batch: SequenceBatch) -> dict[str, th.Tensor]:
+    def _gradient_step(self, batch: SequenceBatch, waiting: SequenceBatch | None) -> dict[str, th.Tensor]:
         """
         One gradient step of Algorithm 1, on the device and free of host syncs: a latent-model update, then an
         actor-critic update (``compile_updates`` compiles this whole method).
 
-        :param batch: the sampled windows: ``latent_batch_size + batch_size`` of them (two independent batches), or
-            ``max(latent_batch_size, batch_size)`` with ``share_latent_batch``
+        As in the reference code, the actor-critic batch is filtered by the latent model after the latent update of its
+        step. That filtering runs in the rollout of the next step's latent update, one rollout over both batches: each
+        step updates the actor and critics on the previous step's batch (``waiting``) and leaves its own for the next
+        step, or for ``_last_actor_critic_step`` at the end of the burst. The latent model and the actor-critic share no
+        parameter, so this order computes the same updates with one rollout and encoder call fewer per step.
+
+        :param batch: the sampled windows: ``latent_batch_size + batch_size`` of them (two independent batches, the
+            actor-critic one waits), or ``max(latent_batch_size, batch_size)`` with ``share_latent_batch``
+        :param waiting: the previous step's actor-critic batch, None in a burst's first step or with ``share_latent_batch``
         :return: the detached statistics of the step
         """
         latent = self.policy.latent
         n_latent, batch_size = self.latent_batch_size, self.batch_size
         latent_batch = SequenceBatch(*(field[:n_latent] for field in batch))
         if not self.share_latent_batch:
-            stats = self._latent_update(latent_batch)
-            ac_batch = SequenceBatch(*(field[n_latent:] for field in batch))
-            with th.no_grad(), self._latent_autocast():
-                latents = latent.sample_latents(self.policy.preprocess(ac_batch.observations), ac_batch.actions)
+            stats, latents = self._latent_update(latent_batch, filter_batch=waiting)
+            self._record_finite(stats)
+            if waiting is not None:
+                actor_critic_stats = self._actor_critic_update(waiting, latents.float())
+                self._record_finite(actor_critic_stats, lag=1)
+                stats.update(actor_critic_stats)
         else:
             ac_batch = SequenceBatch(*(field[:batch_size] for field in batch))
             with self._latent_autocast():
@@ -716,10 +739,21 @@ class DSSLAC(OffPolicyAlgorithm):
                     if batch_size > n_latent:
                         features = th.cat([features, latent.encode(observations[n_latent:batch_size])])
                     latents = latent.latents_from_features(features[:batch_size], ac_batch.actions)
-            stats = self._latent_update(latent_batch, features=latent_features)
-        stats.update(self._actor_critic_update(ac_batch, latents.float()))
-        self._record_finite(stats)
+            stats, _ = self._latent_update(latent_batch, features=latent_features)
+            stats.update(self._actor_critic_update(ac_batch, latents.float()))
+            self._record_finite(stats)
         self._burst_update_index.add_(1)
+        return stats
+
+    def _last_actor_critic_step(self, batch: SequenceBatch) -> dict[str, th.Tensor]:
+        """
+        The actor-critic update on the actor-critic batch of a burst's last gradient step (see ``_gradient_step``),
+        filtered by the latent model as that step left it; its NaN notes name that step.
+        """
+        with th.no_grad(), self._latent_autocast():
+            latents = self.policy.latent.sample_latents(self.policy.preprocess(batch.observations), batch.actions)
+        stats = self._actor_critic_update(batch, latents.float())
+        self._record_finite(stats, lag=1)
         return stats
 
     @th.no_grad()
@@ -837,12 +871,7 @@ class DSSLAC(OffPolicyAlgorithm):
         else:
             windows_per_update = self.latent_batch_size + batch_size
         indices = self.replay_buffer.sample_indices(gradient_steps, windows_per_update)
-        self._begin_burst()
-        history: dict[str, list[th.Tensor]] = defaultdict(list)
-        for k in range(gradient_steps):
-            for key, value in self._run_gradient_step(self.replay_buffer.gather(indices[k])).items():
-                history[key].append(value)
-        means = self._end_burst(history)
+        means = self._end_burst(self._burst(indices))
         self._n_updates += gradient_steps
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
@@ -850,25 +879,48 @@ class DSSLAC(OffPolicyAlgorithm):
         for key, value in means.items():
             self.logger.record(f"train/{key}", value)
 
-    def _run_gradient_step(self, batch: SequenceBatch) -> dict[str, th.Tensor]:
-        """``_gradient_step``, compiled with ``compile_updates`` (falling back to eager, with a warning, if that fails)."""
-        if self._compiled_gradient_step is None:
-            return self._gradient_step(batch)
+    def _burst(self, indices: th.Tensor) -> dict[str, list[th.Tensor]]:
+        """
+        The gradient steps on the windows ``indices[k]`` (from ``sample_indices``), each actor-critic batch updated on in
+        the step after its own (``_gradient_step``) and the last one after them; their statistics by name, in order.
+        """
+        self._begin_burst()
+        history: dict[str, list[th.Tensor]] = defaultdict(list)
+        waiting = None
+        for k in range(indices.shape[0]):
+            batch = self.replay_buffer.gather(indices[k])
+            for key, value in self._run_step(self._gradient_step, batch, waiting).items():
+                history[key].append(value)
+            if not self.share_latent_batch:
+                waiting = SequenceBatch(*(field[self.latent_batch_size :] for field in batch))
+        if waiting is not None:
+            for key, value in self._run_step(self._last_actor_critic_step, waiting).items():
+                history[key].append(value)
+        return history
+
+    def _run_step(self, step: Callable[..., dict[str, th.Tensor]], *args: Any) -> dict[str, th.Tensor]:
+        """
+        ``step(*args)`` (``_gradient_step`` or ``_last_actor_critic_step``), compiled with ``compile_updates`` (falling
+        back to eager, with a warning, if that fails).
+        """
+        compiled = self._compiled_steps.get(step.__name__)
+        if compiled is None:
+            return step(*args)
         try:
             with th._dynamo.config.patch(trace_autograd_ops=True):
                 if self.device.type != "cuda":
-                    return self._compiled_gradient_step(batch)
+                    return compiled(*args)
                 # A CUDA graph's replay reuses its output memory: keep copies of this step's statistics
                 th.compiler.cudagraph_mark_step_begin()
-                return {key: value.clone() for key, value in self._compiled_gradient_step(batch).items()}
+                return {key: value.clone() for key, value in compiled(*args).items()}
         except Exception as error:  # the compiler's errors have no common base class
-            if self._compiled_once:
+            if step.__name__ in self._compiled_once:
                 raise
             warnings.warn(f"compile_updates: the update could not be compiled ({type(error).__name__}: {error}); runs eagerly")
-            self._compiled_gradient_step = None
-            return self._gradient_step(batch)
+            self._compiled_steps = {}
+            return step(*args)
         finally:
-            self._compiled_once = True
+            self._compiled_once.add(step.__name__)
 
     def learn(
         self: SelfDSSLAC,
@@ -910,7 +962,7 @@ class DSSLAC(OffPolicyAlgorithm):
             "_target_params",
             "_source_params",
             "_cost_critic_clip_groups",
-            "_compiled_gradient_step",
+            "_compiled_steps",
             "_compiled_once",
         ]
 

@@ -41,6 +41,59 @@ def test_precomputed_features_give_the_same_latent_loss() -> None:
     th.testing.assert_close(shared, plain)
 
 
+def test_one_rollout_over_two_batches_gives_each_batch_its_own_numbers() -> None:
+    th.manual_seed(0)
+    model = LatentModel((3, 32, 32), 2, feature_dim=16, z1_dim=4, z2_dim=8, hidden_units=(32, 32)).double()
+    own, other = (tuple(field.double() for field in image_batch(32, batch, seed=seed)) for batch, seed in ((3, 0), (2, 1)))
+    noise = th.randn(4, 5, 4, dtype=th.float64), th.randn(4, 5, 8, dtype=th.float64)
+    loss, parts, other_z = model.loss_and_filter(*own, other=other[:2], noise=noise)
+    grads = th.autograd.grad(loss, list(model.parameters()), allow_unused=True)
+
+    reference, reference_parts, _ = model.loss_and_filter(*own, noise=tuple(part[:, :3] for part in noise))
+    reference_grads = th.autograd.grad(reference, list(model.parameters()), allow_unused=True)
+    th.testing.assert_close(loss, reference)
+    th.testing.assert_close(parts, reference_parts)
+    for grad, reference_grad in zip(grads, reference_grads, strict=True):
+        th.testing.assert_close(grad, reference_grad)
+    with th.no_grad():
+        other_rollout = model.posterior(model.encode(other[0]), other[1], tuple(part[:, 3:] for part in noise))
+    th.testing.assert_close(other_z, th.cat([other_rollout.z1, other_rollout.z2], dim=-1))
+    assert not other_z.requires_grad
+
+
+def test_each_actor_critic_batch_is_filtered_after_its_own_latent_update(monkeypatch) -> None:
+    # The actor-critic batch of a step is filtered in the next step's rollout: by the latent model as that step left it
+    model = small_model(HazardPointEnv(obs_type="pixels"), learning_starts=10_000)
+    model.learn(60)
+    model.latent_pretrained = True
+    latent_states, filtered = [], []
+    latent_update, actor_critic_update = model._latent_update, model._actor_critic_update
+
+    def recording_latent_update(*args, **kwargs):
+        result = latent_update(*args, **kwargs)
+        latent_states.append(copy.deepcopy(model.policy.latent.state_dict()))
+        return result
+
+    def recording_actor_critic_update(batch, latents):
+        filtered.append((batch, latents))
+        return actor_critic_update(batch, latents)
+
+    monkeypatch.setattr(model, "_latent_update", recording_latent_update)
+    monkeypatch.setattr(model, "_actor_critic_update", recording_actor_critic_update)
+    monkeypatch.setattr(th, "randn", lambda *shape, **kwargs: th.zeros(*shape, **kwargs))  # the rollouts' means
+    indices = model.replay_buffer.sample_indices(3, model.latent_batch_size + model.batch_size)
+    model._burst(indices)
+    assert len(latent_states) == len(filtered) == 3
+    for k, (batch, latents) in enumerate(filtered):
+        expected_batch = model.replay_buffer.gather(indices[k])
+        th.testing.assert_close(batch.observations, expected_batch.observations[model.latent_batch_size :])
+        reference = copy.deepcopy(model.policy.latent)
+        reference.load_state_dict(latent_states[k])
+        with th.no_grad():
+            expected = reference.sample_latents(model.policy.preprocess(batch.observations), batch.actions)
+        th.testing.assert_close(latents, expected)
+
+
 def test_channels_last_convolutions_match_contiguous_ones() -> None:
     th.manual_seed(0)
     model = LatentModel((3, 64, 64), 2, feature_dim=32, z1_dim=4, z2_dim=8, hidden_units=(32, 32))
@@ -87,11 +140,10 @@ def warmed_up_pair(**fast: object) -> tuple[DSSLAC, DSSLAC]:
     return plain, other
 
 
-def seeded_updates(model: DSSLAC, indices: th.Tensor, n_updates: int = 2) -> list[dict[str, th.Tensor]]:
-    """``n_updates`` gradient steps of one burst on the windows ``indices[k]``, from the same random seed."""
+def seeded_updates(model: DSSLAC, indices: th.Tensor) -> dict[str, list[th.Tensor]]:
+    """The statistics of one burst of gradient steps on the windows ``indices[k]``, from the same random seed."""
     th.manual_seed(11)
-    model._begin_burst()
-    return [model._run_gradient_step(model.replay_buffer.gather(indices[k])) for k in range(n_updates)]
+    return model._burst(indices)
 
 
 def test_compiled_update_matches_eager(monkeypatch) -> None:
@@ -101,18 +153,19 @@ def test_compiled_update_matches_eager(monkeypatch) -> None:
     indices = eager.replay_buffer.sample_indices(3, eager.latent_batch_size + eager.batch_size)
     with warnings.catch_warnings():
         warnings.filterwarnings("error", message="compile_updates")  # no silent fallback to eager
-        compiled_stats = seeded_updates(compiled, indices, 2)
-    assert compiled._compiled_gradient_step is not None
-    for eager_stats, stats in zip(seeded_updates(eager, indices, 2), compiled_stats, strict=True):
-        assert eager_stats.keys() == stats.keys()
-        for key in eager_stats:
-            th.testing.assert_close(stats[key], eager_stats[key], rtol=1e-4, atol=1e-4, msg=key)
+        compiled_stats = seeded_updates(compiled, indices[:2])
+    assert set(compiled._compiled_steps) == {"_gradient_step", "_last_actor_critic_step"}
+    eager_stats = seeded_updates(eager, indices[:2])
+    assert eager_stats.keys() == compiled_stats.keys()
+    for key, values in eager_stats.items():
+        th.testing.assert_close(th.stack(compiled_stats[key]), th.stack(values), rtol=1e-4, atol=1e-4, msg=key)
     # The whole step is one graph: a few hundred ops where eager dispatches thousands, and no host read
-    batch = compiled.replay_buffer.gather(indices[2])
+    batch, waiting = (compiled.replay_buffer.gather(indices[k]) for k in (2, 0))
+    waiting = type(waiting)(*(field[compiled.latent_batch_size :] for field in waiting))
     with DispatchCounter() as compiled_counter:
-        compiled._run_gradient_step(batch)
+        compiled._run_step(compiled._gradient_step, batch, waiting)
     with DispatchCounter() as eager_counter:
-        eager._run_gradient_step(batch)
+        eager._run_step(eager._gradient_step, batch, waiting)
     assert compiled_counter.ops < eager_counter.ops / 4 and compiled_counter.syncs == 0
 
 
@@ -127,17 +180,17 @@ def test_compile_failure_falls_back_to_eager_with_a_warning(monkeypatch) -> None
     model = small_model(HazardPointEnv(), compile_updates=True)
     with pytest.warns(UserWarning, match="could not be compiled.*no compiler here"):
         model.learn(60)
-    assert model._compiled_gradient_step is None and model._n_updates > 0
+    assert model._compiled_steps == {} and model._n_updates > 0
 
 
 def test_bf16_update_losses_are_within_one_percent_of_fp32(monkeypatch) -> None:
     monkeypatch.setattr(dsslac_module, "has_native_bf16", lambda device: True)  # emulated bfloat16 computes the same
     fp32, bf16 = warmed_up_pair(bf16=True)
     indices = fp32.replay_buffer.sample_indices(1, fp32.latent_batch_size + fp32.batch_size)
-    (reference,), (stats,) = seeded_updates(fp32, indices, 1), seeded_updates(bf16, indices, 1)
-    assert stats["latent_loss"] != reference["latent_loss"]  # the autocast took effect
+    reference, stats = seeded_updates(fp32, indices), seeded_updates(bf16, indices)
+    assert stats["latent_loss"][0] != reference["latent_loss"][0]  # the autocast took effect
     for key in ("latent_loss", "image_loss"):
-        assert abs(stats[key] - reference[key]) <= 1e-2 * abs(reference[key]), key
+        assert abs(stats[key][0] - reference[key][0]) <= 1e-2 * abs(reference[key][0]), key
 
 
 class CountFrames:
@@ -170,7 +223,7 @@ def test_fused_polyak_update_follows_the_formula() -> None:
     th.nn.init.normal_(policy.critic_target.weights[0])  # make target and source differ
     before = policy.critic_target.weights[0].detach().clone()
     indices = model.replay_buffer.sample_indices(1, model.latent_batch_size + model.batch_size)
-    seeded_updates(model, indices, 1)
+    seeded_updates(model, indices)
     expected = (1.0 - model.tau) * before + model.tau * policy.critic.weights[0].detach()
     th.testing.assert_close(policy.critic_target.weights[0], expected)
 
