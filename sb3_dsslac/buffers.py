@@ -325,19 +325,20 @@ class SequenceReplayBuffer(ReplayBuffer):
         slots = (indices[:, :1] + offsets) % self.buffer_size  # (B, L+1)
         rows = slots * self.n_envs + indices[:, 1:]  # rows of the (slot, env)-flattened arrays
 
-        def take(name: str, window_rows: th.Tensor) -> th.Tensor:
+        def take(name: str, flat_rows: th.Tensor, length: int) -> th.Tensor:
             # index_select of whole rows: several times faster than advanced indexing, on the CPU too
             tensor = stored[name]
             flat = tensor.view(self.buffer_size * self.n_envs, *tensor.shape[2:])
-            return flat.index_select(0, window_rows.reshape(-1)).view(*window_rows.shape, *tensor.shape[2:])
+            return flat.index_select(0, flat_rows).view(len(indices), length, *tensor.shape[2:])
 
-        transitions = rows[:, :-1]
+        length = self.sequence_length
+        transition_rows = rows[:, :-1].reshape(-1)  # flattened once for the four transition fields
         return SequenceBatch(
-            observations=take("observations", rows),
-            actions=take("actions", transitions),
-            rewards=take("rewards", transitions),
-            costs=take("costs", transitions),
-            terminated=take("terminated", transitions),
+            observations=take("observations", rows.view(-1), length + 1),
+            actions=take("actions", transition_rows, length),
+            rewards=take("rewards", transition_rows, length),
+            costs=take("costs", transition_rows, length),
+            terminated=take("terminated", transition_rows, length),
         )
 
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> SequenceBatch:  # type: ignore[override]

@@ -47,18 +47,22 @@ def adam_step(optimizer: torch.optim.Optimizer, grads: list[Tensor], learning_ra
     """
     One Adam step of the optimizer's single parameter group with ``grads`` (in the order of its parameters).
 
-    Eagerly, the gradients become ``.grad`` and the optimizer steps (its fused kernel by default). While
-    ``torch.compile`` traces, it is the functional capturable Adam on the optimizer's own state tensors instead (the
-    optimizer's ``step`` breaks a graph), with the step size read from ``learning_rate`` (a 0-d tensor on the
-    parameters' device), so that a new step size needs no recompilation. Call ``init_adam_state`` before tracing.
+    Eagerly, a fused Adam runs its kernel directly: the arithmetic of ``optimizer.step()`` without its profiler ranges
+    and hooks (two ops per step); any other optimizer gets the gradients as ``.grad`` and steps. While ``torch.compile``
+    traces, it is the functional capturable Adam on the optimizer's own state tensors instead (the optimizer's
+    ``step`` breaks a graph), with the step size read from ``learning_rate`` (a 0-d tensor on the parameters'
+    device), so that a new step size needs no recompilation. Call ``init_adam_state`` before tracing.
     """
     (group,) = optimizer.param_groups
     params: list[Tensor] = group["params"]
-    if not torch.compiler.is_compiling():
+    compiling = torch.compiler.is_compiling()
+    if not compiling and not (isinstance(optimizer, torch.optim.Adam) and group["fused"]):
         for param, grad in zip(params, grads, strict=True):
             param.grad = grad
         optimizer.step()
         return
+    if not compiling:
+        init_adam_state(optimizer)
     states = [optimizer.state[param] for param in params]
     beta1, beta2 = group["betas"]
     with torch.no_grad():
@@ -69,10 +73,10 @@ def adam_step(optimizer: torch.optim.Optimizer, grads: list[Tensor], learning_ra
             [state["exp_avg_sq"] for state in states],
             [state["max_exp_avg_sq"] for state in states] if group["amsgrad"] else [],
             [state["step"] for state in states],
-            foreach=True,
-            capturable=True,
+            foreach=compiling,
+            capturable=compiling,
             differentiable=False,
-            fused=None,
+            fused=not compiling,
             grad_scale=None,
             found_inf=None,
             has_complex=False,
@@ -80,7 +84,7 @@ def adam_step(optimizer: torch.optim.Optimizer, grads: list[Tensor], learning_ra
             amsgrad=group["amsgrad"],
             beta1=beta1,
             beta2=beta2,
-            lr=group["lr"] if learning_rate is None else learning_rate,
+            lr=group["lr"] if learning_rate is None or not compiling else learning_rate,
             weight_decay=group["weight_decay"],
             eps=group["eps"],
             maximize=group["maximize"],
