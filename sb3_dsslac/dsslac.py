@@ -442,6 +442,9 @@ class DSSLAC(OffPolicyAlgorithm):
         self._lagrange_learning_rate_device = th.zeros((), dtype=th.float64, device=self.device)
         self._first_nonfinite_update = th.full((len(self._GUARDED_LOSSES),), -1, dtype=th.long, device=self.device)
         self._burst_update_index = th.zeros((), dtype=th.long, device=self.device)
+        # How many steps before their own each guarded loss is computed when the updates are pipelined (_gradient_step)
+        lags = [0 if name == "latent_loss" else 1 for name in self._GUARDED_LOSSES]
+        self._pipelined_lags = th.tensor(lags, dtype=th.long, device=self.device)
         self._target_params = [*policy.critic_target.parameters(), *policy.cost_critic_target.parameters()]
         self._source_params = [*policy.critic.parameters(), *policy.cost_critic.parameters()]
         # The reference trains the IQN's cosine and quantile nets with two optimizers, each clipped at 40: clipped apart
@@ -560,20 +563,22 @@ class DSSLAC(OffPolicyAlgorithm):
     # Losses checked for NaN/inf on the device during a burst, in this order (see ``_raise_if_not_finite``)
     _GUARDED_LOSSES = ("latent_loss", "critic_loss", "cost_critic_loss", "actor_loss", "ent_coef_loss")
 
-    def _record_finite(self, losses: dict[str, th.Tensor], lag: int = 0) -> None:
+    def _record_finite(self, losses: dict[str, th.Tensor], pipelined: bool = False) -> None:
         """
         Note on the device, without reading it, the first update of this burst in which each guarded loss of
         ``losses`` (detached scalars; the guarded ones present must be a run of ``_GUARDED_LOSSES``) is NaN or inf: one
         check for all of them. The burst reads the notes once, at its end (``_raise_if_not_finite``).
 
-        :param lag: how many gradient steps before the current one the losses belong to
+        :param pipelined: the actor-critic losses belong to the step before the current one (``_gradient_step``)
         """
         names = [name for name in self._GUARDED_LOSSES if name in losses]
         start = self._GUARDED_LOSSES.index(names[0])
         assert tuple(names) == self._GUARDED_LOSSES[start : start + len(names)], names
         first = self._first_nonfinite_update[start : start + len(names)]
         not_finite = ~th.isfinite(th.stack([losses[name] for name in names]))
-        update = self._burst_update_index - lag if lag else self._burst_update_index
+        update = self._burst_update_index
+        if pipelined:
+            update = update - self._pipelined_lags[start : start + len(names)]
         first.copy_(th.where((first < 0) & not_finite, update, first))
 
     def _raise_if_not_finite(self, first_nonfinite: np.ndarray) -> None:
@@ -724,11 +729,8 @@ class DSSLAC(OffPolicyAlgorithm):
         latent_batch = SequenceBatch(*(field[:n_latent] for field in batch))
         if not self.share_latent_batch:
             stats, latents = self._latent_update(latent_batch, filter_batch=waiting)
-            self._record_finite(stats)
             if waiting is not None:
-                actor_critic_stats = self._actor_critic_update(waiting, latents.float())
-                self._record_finite(actor_critic_stats, lag=1)
-                stats.update(actor_critic_stats)
+                stats.update(self._actor_critic_update(waiting, latents.float()))
         else:
             ac_batch = SequenceBatch(*(field[:batch_size] for field in batch))
             with self._latent_autocast():
@@ -741,7 +743,7 @@ class DSSLAC(OffPolicyAlgorithm):
                     latents = latent.latents_from_features(features[:batch_size], ac_batch.actions)
             stats, _ = self._latent_update(latent_batch, features=latent_features)
             stats.update(self._actor_critic_update(ac_batch, latents.float()))
-            self._record_finite(stats)
+        self._record_finite(stats, pipelined=not self.share_latent_batch)
         self._burst_update_index.add_(1)
         return stats
 
@@ -753,7 +755,7 @@ class DSSLAC(OffPolicyAlgorithm):
         with th.no_grad(), self._latent_autocast():
             latents = self.policy.latent.sample_latents(self.policy.preprocess(batch.observations), batch.actions)
         stats = self._actor_critic_update(batch, latents.float())
-        self._record_finite(stats, lag=1)
+        self._record_finite(stats, pipelined=True)
         return stats
 
     @th.no_grad()
@@ -959,6 +961,7 @@ class DSSLAC(OffPolicyAlgorithm):
             "_lagrange_learning_rate_device",
             "_first_nonfinite_update",
             "_burst_update_index",
+            "_pipelined_lags",
             "_target_params",
             "_source_params",
             "_cost_critic_clip_groups",

@@ -55,11 +55,19 @@ def gaussian_kl(mean_q: Tensor, std_q: Tensor, mean_p: Tensor, std_p: Tensor) ->
     return 0.5 * (var_ratio + mean_term - 1.0 - torch.log(var_ratio))
 
 
-def gaussian_nll(x: Tensor, mean: Tensor, std: Tensor | float) -> Tensor:
+def gaussian_nll(x: Tensor, mean: Tensor, std: Tensor) -> Tensor:
     """Elementwise ``-log N(x | mean, std^2)``."""
-    if isinstance(std, float):  # the constants folded: four ops instead of six
-        return (x - mean).square().mul(0.5 / std**2).add(math.log(std) + _HALF_LOG_2PI)
     return 0.5 * ((x - mean) / std).pow(2) + torch.log(std) + _HALF_LOG_2PI
+
+
+def fixed_std_gaussian_nll(x: Tensor, mean: Tensor, std: float) -> Tensor:
+    """
+    ``-log N(x | mean, std^2)`` of (B, ...) tensors summed over all but the first dim, mean over it: a scalar, from one
+    squared-error sum (three ops forward and two backward, where the elementwise form takes seven and about as many).
+    """
+    values_per_row = x[0].numel()
+    squared_error = F.mse_loss(mean.float(), x, reduction="sum")
+    return squared_error.mul(0.5 / (std**2 * x.shape[0])).add(values_per_row * (math.log(std) + _HALF_LOG_2PI))
 
 
 class GaussianMLP(nn.Module):
@@ -360,7 +368,7 @@ class LatentModel(nn.Module):
         kl = gaussian_kl(z1_mean, z1_std, prior_mean, prior_std).sum(dim=(1, 2)).mean()
 
         reconstruction = self.decode(z)
-        image_loss = gaussian_nll(observations, reconstruction, self.image_std).flatten(1).sum(dim=1).mean()
+        image_loss = fixed_std_gaussian_nll(observations, reconstruction, self.image_std)
 
         # One row per transition (B * T, .): a linear layer on (B, T, .) adds two views each way
         transitions = torch.cat([z[:, :-1], actions, z[:, 1:]], dim=-1).flatten(0, 1)

@@ -47,21 +47,21 @@ def adam_step(optimizer: torch.optim.Optimizer, grads: list[Tensor], learning_ra
     """
     One Adam step of the optimizer's single parameter group with ``grads`` (in the order of its parameters).
 
-    Eagerly, a fused Adam runs its kernel directly: the arithmetic of ``optimizer.step()`` without its profiler ranges
-    and hooks (two ops per step); any other optimizer gets the gradients as ``.grad`` and steps. While ``torch.compile``
-    traces, it is the functional capturable Adam on the optimizer's own state tensors instead (the optimizer's
-    ``step`` breaks a graph), with the step size read from ``learning_rate`` (a 0-d tensor on the parameters'
-    device), so that a new step size needs no recompilation. Call ``init_adam_state`` before tracing.
+    Eagerly, the gradients become ``.grad``; a fused Adam then runs its kernel directly, the arithmetic of
+    ``optimizer.step()`` without its profiler ranges and hooks (two ops per step), and any other optimizer steps.
+    While ``torch.compile`` traces, it is the functional capturable Adam on the optimizer's own state tensors instead
+    (the optimizer's ``step`` breaks a graph), with the step size read from ``learning_rate`` (a 0-d tensor on the
+    parameters' device), so that a new step size needs no recompilation. Call ``init_adam_state`` before tracing.
     """
     (group,) = optimizer.param_groups
     params: list[Tensor] = group["params"]
     compiling = torch.compiler.is_compiling()
-    if not compiling and not (isinstance(optimizer, torch.optim.Adam) and group["fused"]):
+    if not compiling:
         for param, grad in zip(params, grads, strict=True):
             param.grad = grad
-        optimizer.step()
-        return
-    if not compiling:
+        if not (isinstance(optimizer, torch.optim.Adam) and group["fused"]):
+            optimizer.step()
+            return
         init_adam_state(optimizer)
     states = [optimizer.state[param] for param in params]
     beta1, beta2 = group["betas"]

@@ -8,7 +8,7 @@ from torch.distributions import Normal, kl_divergence
 
 from sb3_dsslac.actor import LatentActor
 from sb3_dsslac.critics import IQNCostCritic, TwinQCritic, sample_taus
-from sb3_dsslac.latent import LatentModel, build_mlp, gaussian_kl
+from sb3_dsslac.latent import LatentModel, build_mlp, fixed_std_gaussian_nll, gaussian_kl, gaussian_nll
 
 Z1, Z2, FEATURES, HIDDEN = 4, 8, 16, (32, 32)
 BATCH, STEPS, ACTION_DIM = 2, 3, 2
@@ -281,3 +281,15 @@ def test_twin_q_critic_loads_the_earlier_two_network_layout():
     q1, q2 = critic(z, actions)
     torch.testing.assert_close(q1, old["q1"](x))
     torch.testing.assert_close(q2, old["q2"](x))
+
+
+def test_fixed_std_nll_is_the_elementwise_nll_summed_per_row_and_averaged() -> None:
+    torch.manual_seed(0)
+    x, mean = torch.rand(3, 2, 3, 8, 8), torch.rand(3, 2, 3, 8, 8, requires_grad=True)
+    std = 0.4**0.5
+    expected = gaussian_nll(x, mean, torch.tensor(std)).flatten(1).sum(dim=1).mean()
+    loss = fixed_std_gaussian_nll(x, mean, std)
+    torch.testing.assert_close(loss, expected)
+    (grad,) = torch.autograd.grad(loss, mean)
+    (expected_grad,) = torch.autograd.grad(expected, mean)
+    torch.testing.assert_close(grad, expected_grad)
