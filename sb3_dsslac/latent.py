@@ -305,14 +305,9 @@ class LatentModel(nn.Module):
         features: Tensor | None = None,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """
-        Negative ELBO plus reward and cost likelihoods on a batch of sequences.
+        Negative ELBO plus reward and cost likelihoods on a batch of sequences (``loss_and_filter`` without other
+        sequences; the arguments are its own).
 
-        :param observations: (B, T+1, *observation_shape) floats (images in [0, 1])
-        :param actions: (B, T, A) in [-1, 1]
-        :param rewards: (B, T) reward of transition t -> t+1
-        :param costs: (B, T) cost of transition t -> t+1 (binarised as cost > 0)
-        :param terminated: (B, T) 1.0 where transition t ended the episode by termination (masks the reward term)
-        :param features: ``encode(observations)`` (B, T+1, feature_dim) if the caller already computed it
         :return: total scalar loss and the detached terms ``kl``, ``image_loss``, ``reward_loss``, ``cost_loss``
             (each summed over time (and pixels), mean over the batch)
         """
@@ -334,6 +329,12 @@ class LatentModel(nn.Module):
         ``loss``, and the posterior samples of ``other`` sequences without gradient, from one rollout over both batches
         (the rows of a rollout never meet): a few hundred ops fewer than a second rollout, and the same numbers.
 
+        :param observations: (B, T+1, *observation_shape) floats (images in [0, 1])
+        :param actions: (B, T, A) in [-1, 1]
+        :param rewards: (B, T) reward of transition t -> t+1
+        :param costs: (B, T) cost of transition t -> t+1 (binarised as cost > 0)
+        :param terminated: (B, T) 1.0 where transition t ended the episode by termination (masks the reward term)
+        :param features: ``encode(observations)`` (B, T+1, feature_dim) if the caller already computed it
         :param other: observations (B', T+1, *observation_shape) and actions (B', T, A) of the other sequences
         :param noise: the rollout's noise (T+1, B + B', Z1) and (T+1, B + B', Z2), the loss's batch first; drawn if None
         :return: the total loss, its detached terms (as ``loss``) and the other sequences' ``z = [z1, z2]``
