@@ -5,11 +5,12 @@ bringing the evaluation episode cost under the budget.
 Every seed is a `python -m sb3_dsslac train` run in its own process with one torch thread (``--parallel`` at once),
 checkpointed every ``--checkpoint-every`` simulator steps. The benchmark is resumable: started again after any stop,
 it continues each unfinished seed from its last checkpoint and reuses the finished ones. It writes, under
-``benchmarks/results/learning_<task>_<obs>_<preset>/``, a CSV per seed, ``curves.png`` (reward and cost against
-simulator steps: each seed, their mean, the budget and the random policy's level; and each seed's Lagrange
-multiplier) and ``table.md`` (with each seed's wall and CPU minutes). On pixels it also shows what the first seed's
-agent sees and believes: ``beliefs.png`` (frames beside the latent model's reconstructions, with the predicted
-probability of cost) and ``episode.mp4`` (a deterministic evaluation episode, first-person beside third-person).
+``benchmarks/results/learning_<task>_<obs>_<preset>/`` (plus ``_<key>_<value>`` per ``--hyperparams`` override), a CSV
+per seed, ``curves.png`` (reward and cost against simulator steps: each seed, their mean, the budget and the random
+policy's level; and each seed's Lagrange multiplier) and ``table.md`` (with each seed's wall and CPU minutes). On
+pixels it also shows what the first seed's agent sees and believes: ``beliefs.png`` (frames beside the latent model's
+reconstructions, with the predicted probability of cost) and ``episode.mp4`` (a deterministic evaluation episode,
+first-person beside third-person).
 
     python benchmarks/learning.py                                           # cpu_learning, state, 160k steps, seed 0
     python benchmarks/learning.py --seeds 0 1 2 --parallel 2                # three seeds, two at a time
@@ -374,9 +375,13 @@ def main() -> None:
         "--no-pictures", action="store_true", help="on pixels, skip beliefs.png and episode.mp4 of the first seed"
     )
     parser.add_argument("--poll", type=float, default=5.0, help="seconds between checks on the running seeds")
-    parser.add_argument("--out", type=Path, help="results folder (default benchmarks/results/learning_<task>_<obs>_<preset>)")
+    parser.add_argument(
+        "--out", type=Path, help="results folder (default benchmarks/results/learning_<task>_<obs>_<preset>[_<key>_<value>])"
+    )
     args = parser.parse_args()
-    name = f"learning_{task_name(args.env)}_{args.obs_type}_{args.preset}"
+    # Overrides name the folder and the title too: a variant never overwrites its preset's results
+    variant = "".join(f"_{setting.replace('=', '_')}" for setting in args.hyperparams)
+    name = f"learning_{task_name(args.env)}_{args.obs_type}_{args.preset}{variant}"
     out = args.out or Path("benchmarks/results") / name
     runs_root = out / RUNS_DIR
     runs_root.mkdir(parents=True, exist_ok=True)
@@ -386,7 +391,8 @@ def main() -> None:
     random = random_level(args, out)
     for seed, run in runs.items():
         write_seed_csv(out / f"seed{seed}.csv", run)
-    title = f"{task_name(args.env)} ({args.obs_type}), preset {args.preset}, {len(runs)} seeds"
+    overrides = f" with {' '.join(args.hyperparams)}" if args.hyperparams else ""
+    title = f"{task_name(args.env)} ({args.obs_type}), preset {args.preset}{overrides}, {len(runs)} seeds"
     multipliers = {seed: read_multiplier(runs_root / f"seed{seed}") for seed in args.seeds}
     plot_seeds(out / "curves.png", runs, random, multipliers, title)
     table = summary_table(runs, random, runs_root)
