@@ -717,7 +717,8 @@ class DSSLAC(OffPolicyAlgorithm):
         step. That filtering runs in the rollout of the next step's latent update, one rollout over both batches: each
         step updates the actor and critics on the previous step's batch (``waiting``) and leaves its own for the next
         step, or for ``_last_actor_critic_step`` at the end of the burst. The latent model and the actor-critic share no
-        parameter, so this order computes the same updates with one rollout and encoder call fewer per step.
+        parameter, so this order computes the same updates with one rollout and first-frame pass fewer per step (the
+        waiting batch is still encoded on its own, without gradient).
 
         :param batch: the sampled windows: ``latent_batch_size + batch_size`` of them (two independent batches, the
             actor-critic one waits), or ``max(latent_batch_size, batch_size)`` with ``share_latent_batch``
