@@ -4,6 +4,7 @@ checkpoints), training and resuming. Steps of a ``TrainConfig`` are simulator st
 """
 
 import csv
+import re
 import shlex
 import sys
 from dataclasses import asdict, dataclass, field, fields
@@ -29,6 +30,17 @@ FINAL_MODEL = "model.zip"
 CHECKPOINT_DIR = "checkpoints"
 CHECKPOINT_PREFIX = "dsslac"
 EVAL_SEED_OFFSET = 10_000
+
+
+class _HyperparamLoader(yaml.SafeLoader):
+    """YAML 1.1 reads ``1e-6`` (no dot) as a string; this loader reads it, as YAML 1.2 and Python do, as a float."""
+
+
+_HyperparamLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
 
 
 @dataclass
@@ -158,13 +170,13 @@ def _make_logger(run_dir: Path, verbose: int, resume_from: int | None) -> Logger
 
 
 def parse_hyperparams(pairs: list[str] | None) -> dict[str, Any]:
-    """``["key=value", ...]`` to a dict, each value read as YAML (``policy_kwargs="{z1_dim: 16}"``)."""
+    """``["key=value", ...]`` to a dict, each value read as YAML (``policy_kwargs="{z1_dim: 16}"``; ``1e-6`` is a float)."""
     hyperparams: dict[str, Any] = {}
     for pair in pairs or []:
         key, sep, value = pair.partition("=")
         if not sep or not key:
             raise ValueError(f"--hyperparams takes key=value pairs, got {pair!r}")
-        hyperparams[key.strip()] = yaml.safe_load(value)
+        hyperparams[key.strip()] = yaml.load(value, Loader=_HyperparamLoader)
     return hyperparams
 
 

@@ -11,7 +11,7 @@ import yaml
 from sb3_dsslac import DSSLAC
 from sb3_dsslac.cli import main
 from sb3_dsslac.rollouts import side_by_side
-from sb3_dsslac.runs import TrainConfig, find_checkpoint, load_config, train
+from sb3_dsslac.runs import TrainConfig, find_checkpoint, load_config, parse_hyperparams, train
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import small_model
 
@@ -243,6 +243,14 @@ def test_bad_input_gives_clear_errors(tmp_path: Path, capsys) -> None:
     assert main(["evaluate", str(tmp_path / "nothing.zip"), "--env", TINY_ENV]) == 2
     with pytest.raises(ValueError, match="Unknown preset"):
         TrainConfig(env=TINY_ENV, preset="gpu")
+
+
+def test_hyperparams_read_exponent_floats_as_python_does() -> None:
+    # YAML 1.1 alone reads "1e-6" as a string, which then failed deep inside the model
+    parsed = parse_hyperparams(["lagrange_init=1e-6", "a=3E+2", "b=2.5e-4", "c=7", "d=1_000", "e=e5", "f={lr: 1e-3}"])
+    assert parsed == {"lagrange_init": 1e-6, "a": 300.0, "b": 2.5e-4, "c": 7, "d": 1000, "e": "e5", "f": {"lr": 1e-3}}
+    assert isinstance(parsed["lagrange_init"], float) and isinstance(parsed["c"], int)
+    assert yaml.safe_load("x: 1e-6")["x"] == "1e-6"  # the plain loader is untouched
 
 
 def test_train_refuses_to_overwrite_a_run(trained_run: Path) -> None:
