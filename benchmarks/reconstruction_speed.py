@@ -2,8 +2,9 @@
 How many latent-model updates does a preset need before its reconstructions hold the hazards and the goal? Latent
 training alone (no actor-critic) on a buffer of random-policy pixel frames, probed after each of ``--checkpoints``
 updates: the mean absolute reconstruction error (in [0, 1]) of the filter's beliefs along three deterministic
-evaluation episodes, over the hazard pixels (blue), the goal pixels (green) and all pixels, and a ``beliefs.png``
-of the first episode at each checkpoint.
+evaluation episodes, over the hazard pixels (blue), the goal pixels (green) and all pixels; the reward decoder's R^2
+on held-out random-policy windows (another env seed: the reward says how far the robot moved toward the goal, so it
+measures how much of the goal the latent holds); and a ``beliefs.png`` of the first episode at each checkpoint.
 
     python benchmarks/reconstruction_speed.py                                  # cpu_pixels, 20k random steps
     python benchmarks/reconstruction_speed.py --hyperparams image_noise=0.4    # the thesis's likelihood variance
@@ -21,6 +22,7 @@ import torch as th
 from machine import cpu_model
 
 from sb3_dsslac import DSSLAC
+from sb3_dsslac.buffers import SequenceBatch
 from sb3_dsslac.beliefs import EpisodeBeliefs, episode_beliefs, plot_beliefs
 from sb3_dsslac.envs import make_env
 from sb3_dsslac.presets import preset_hyperparams
@@ -48,6 +50,42 @@ def reconstruction_errors(episodes: list[EpisodeBeliefs]) -> dict[str, float | N
     return {name: round(float(np.mean(values)), 3) if values else None for name, values in errors.items()}
 
 
+def held_out_windows(env_id: str, hyperparams: dict, steps: int) -> SequenceBatch:
+    """All windows of ``steps`` random-policy agent steps of a separate env seed, as a latent update sees them."""
+    hyperparams = {**hyperparams, "learning_starts": steps, "train_freq": steps + 1, "buffer_size": steps + 1}
+    collector = DSSLAC("LatentPolicy", make_env(env_id, "pixels"), seed=1, verbose=0, **hyperparams)
+    collector.learn(steps)
+    buffer = collector.replay_buffer
+    windows = buffer.valid_windows(buffer.sequence_length)
+    return buffer.gather(th.as_tensor(np.stack([windows, np.zeros_like(windows)], axis=-1)).to(buffer.device))
+
+
+def reward_r2(model: DSSLAC, windows: SequenceBatch, chunk: int = 256) -> dict[str, float]:
+    """
+    R^2 of the reward decoder's means on ``windows`` (posterior latents of each window; all its transitions): over all
+    transitions, and over those whose two frames both show the goal (at least 10 green pixels), where the frames hold
+    what the reward depends on.
+    """
+    latent, predictions = model.policy.latent, []
+    with th.no_grad():
+        for start in range(0, len(windows.rewards), chunk):
+            observations = model.policy.preprocess(windows.observations[start : start + chunk])
+            actions = windows.actions[start : start + chunk]
+            z = latent.sample_latents(observations, actions)
+            mean, _ = latent.reward_decoder(th.cat([z[:, :-1], actions, z[:, 1:]], dim=-1))
+            predictions.append(mean.squeeze(-1))
+    frames = windows.observations.permute(0, 1, 3, 4, 2).numpy()  # (B, L+1, H, W, C)
+    goal_pixels = object_masks(frames.reshape(-1, *frames.shape[2:]))["goal"].sum(axis=(1, 2)).reshape(frames.shape[:2])
+    in_view = th.as_tensor((goal_pixels[:, :-1] >= 10) & (goal_pixels[:, 1:] >= 10))
+    errors, rewards = (th.cat(predictions) - windows.rewards).pow(2), windows.rewards
+
+    def r2(mask: th.Tensor) -> float:
+        return round(float(1.0 - errors[mask].mean() / rewards[mask].var()), 3)
+
+    share = round(float(in_view.float().mean()), 3)
+    return {"all": r2(th.ones_like(in_view)), "goal_in_view": r2(in_view), "share_in_view": share}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="SafetyGym/PointGoal1-v0")
@@ -55,6 +93,7 @@ def main() -> None:
     parser.add_argument("--hyperparams", nargs="*", default=[], metavar="KEY=VALUE", help="DSSLAC keywords (YAML)")
     parser.add_argument("--random-steps", type=int, default=20_000, help="agent steps of random-policy frames")
     parser.add_argument("--checkpoints", type=int, nargs="+", default=[1000, 2000, 4000, 7000, 10000, 14000, 20000])
+    parser.add_argument("--held-out-steps", type=int, default=2_000, help="random agent steps of the reward R^2 windows")
     parser.add_argument("--episode-steps", type=int, default=150, help="agent steps of each probe episode")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/reconstruction_speed"))
     args = parser.parse_args()
@@ -69,6 +108,7 @@ def main() -> None:
     hyperparams.update(latent_pretrain_steps=0, buffer_size=args.random_steps + 1)
     model = DSSLAC("LatentPolicy", make_env(args.env, "pixels"), seed=0, verbose=0, **hyperparams)
     model.learn(args.random_steps + 1)
+    windows = held_out_windows(args.env, hyperparams, args.held_out_steps)
     print(f"{args.env}, preset {args.preset} {parse_hyperparams(args.hyperparams) or ''}, {cpu_model()}, one thread")
     done = 0
     for target in args.checkpoints:
@@ -81,6 +121,7 @@ def main() -> None:
         episodes = [episode_beliefs(model, args.env, seed=10_000 + index, max_steps=args.episode_steps) for index in range(3)]
         plot_beliefs(episodes[0], args.out / f"beliefs_{done}.png", title=f"after {done:,} latent updates")
         row = {"latent_updates": done, "updates_per_s": round(n_updates / seconds, 2)}
+        row["reward_r2"] = reward_r2(model, windows)
         print(json.dumps({**row, "mean_abs_error": reconstruction_errors(episodes)}), flush=True)
 
 

@@ -143,6 +143,7 @@ class LatentModel(nn.Module):
     :param z2_dim: size of z2
     :param hidden_units: hidden layers of every Gaussian / Bernoulli MLP (and of the vector encoder/decoder)
     :param image_noise: variance of the Gaussian observation likelihood (std = sqrt(image_noise))
+    :param reward_loss_weight: scale of the Gaussian reward loss (1 in the thesis)
     :param cost_loss_weight: scale of the Bernoulli cost loss
     :param cost_positive_weight: extra weight of the positive (cost > 0) samples in the cost loss
     :param image_channels: output channels of the encoder's four stride-2 convolutions, mirrored by the decoder (images
@@ -158,6 +159,7 @@ class LatentModel(nn.Module):
         z2_dim: int = 200,
         hidden_units: tuple[int, ...] = (256, 256),
         image_noise: float = 0.4,
+        reward_loss_weight: float = 1.0,
         cost_loss_weight: float = 30.0,
         cost_positive_weight: float = 100.0,
         image_channels: tuple[int, ...] = THESIS_IMAGE_CHANNELS,
@@ -176,6 +178,7 @@ class LatentModel(nn.Module):
         self.z2_dim = z2_dim
         self.z_dim = z1_dim + z2_dim
         self.image_std = math.sqrt(image_noise)
+        self.reward_loss_weight = reward_loss_weight
         self.cost_loss_weight = cost_loss_weight
         self.cost_positive_weight = cost_positive_weight
 
@@ -375,7 +378,7 @@ class LatentModel(nn.Module):
         transitions = torch.cat([z[:, :-1], actions, z[:, 1:]], dim=-1).flatten(0, 1)
         reward_mean, reward_std = self.reward_decoder(transitions)
         reward_nll = gaussian_nll(rewards, reward_mean.view_as(rewards), reward_std.view_as(rewards))
-        reward_loss = (reward_nll * (1.0 - terminated)).sum(dim=1).mean()
+        reward_loss = self.reward_loss_weight * (reward_nll * (1.0 - terminated)).sum(dim=1).mean()
 
         # log(p + 1e-6) and log(1 - p + 1e-6) from the logit without cancellation: logaddexp(log p, log 1e-6).
         logits = self.cost_decoder(transitions).view_as(costs)

@@ -38,6 +38,8 @@ class LatentPolicy(BasePolicy):
     :param cost_critic_hidden_dim: hidden width of the IQN head
     :param cost_critic_initial_value: initial output of the "mean" critic (Safe SLAC: the discounted budget)
     :param image_noise: variance of the Gaussian observation likelihood (0.4 in the thesis code: std 0.632)
+    :param reward_loss_weight: weight of the Gaussian reward likelihood in the latent loss (1 in the thesis). Its one
+        scalar per step is otherwise outweighed by the 12,288 pixel terms of a 64x64x3 frame
     :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss
     :param cost_positive_weight: extra weight of unsafe (cost > 0) steps in the cost likelihood
     :param image_channels: output channels of the conv encoder's four stride-2 layers, mirrored by the decoder; the
@@ -73,6 +75,7 @@ class LatentPolicy(BasePolicy):
         cost_critic_hidden_dim: int = 512,
         cost_critic_initial_value: float = 0.0,
         image_noise: float = 0.4,
+        reward_loss_weight: float = 1.0,
         cost_loss_weight: float = 30.0,
         cost_positive_weight: float = 100.0,
         image_channels: tuple[int, ...] = THESIS_IMAGE_CHANNELS,
@@ -101,6 +104,7 @@ class LatentPolicy(BasePolicy):
         self.cost_critic_hidden_dim = cost_critic_hidden_dim
         self.cost_critic_initial_value = cost_critic_initial_value
         self.image_noise = image_noise
+        self.reward_loss_weight = reward_loss_weight
         self.cost_loss_weight = cost_loss_weight
         self.cost_positive_weight = cost_positive_weight
         self.image_channels = tuple(image_channels)
@@ -123,6 +127,7 @@ class LatentPolicy(BasePolicy):
             z2_dim=self.z2_dim,
             hidden_units=self.hidden_units,
             image_noise=self.image_noise,
+            reward_loss_weight=self.reward_loss_weight,
             cost_loss_weight=self.cost_loss_weight,
             cost_positive_weight=self.cost_positive_weight,
             image_channels=self.image_channels,
@@ -163,6 +168,7 @@ class LatentPolicy(BasePolicy):
                 cost_critic_hidden_dim=self.cost_critic_hidden_dim,
                 cost_critic_initial_value=self.cost_critic_initial_value,
                 image_noise=self.image_noise,
+                reward_loss_weight=self.reward_loss_weight,
                 cost_loss_weight=self.cost_loss_weight,
                 cost_positive_weight=self.cost_positive_weight,
                 image_channels=self.image_channels,

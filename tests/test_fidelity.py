@@ -147,12 +147,13 @@ def test_policy_kwargs_alone_are_used_and_not_modified(tmp_path) -> None:
     default = small_model(HazardPointEnv())
     assert default.policy.latent.image_std == pytest.approx(0.4**0.5) and default.cost_critic == "iqn"
 
-    model = small_model(HazardPointEnv(), image_noise=0.07, cost_loss_weight=5.0)
+    policy_kwargs = {**SMALL["policy_kwargs"], "reward_loss_weight": 20.0}
+    model = small_model(HazardPointEnv(), image_noise=0.07, cost_loss_weight=5.0, policy_kwargs=policy_kwargs)
     model.learn(45)
     model.save(tmp_path / "model.zip")
     loaded = DSSLAC.load(tmp_path / "model.zip", env=HazardPointEnv())
     assert loaded.policy.latent.image_std == pytest.approx(0.07**0.5)
-    assert loaded.policy.latent.cost_loss_weight == 5.0
+    assert loaded.policy.latent.cost_loss_weight == 5.0 and loaded.policy.latent.reward_loss_weight == 20.0
     loaded.learn(10, reset_num_timesteps=False)
 
 

@@ -147,6 +147,19 @@ def test_reward_loss_masked_by_termination():
     assert masked["reward_loss"] == 0
 
 
+def test_reward_loss_weight_scales_the_reward_term_only():
+    observations, actions, rewards, costs, terminated = make_batch((5,))
+    losses = {}
+    for weight in (1.0, 25.0):
+        torch.manual_seed(0)
+        model = make_model((5,), reward_loss_weight=weight)
+        torch.manual_seed(1)
+        _, losses[weight] = model.loss(observations, actions, rewards, costs, terminated)
+    assert losses[25.0]["reward_loss"].item() == pytest.approx(25.0 * losses[1.0]["reward_loss"].item(), rel=1e-6)
+    for term in ("kl", "image_loss", "cost_loss"):
+        assert losses[25.0][term].item() == pytest.approx(losses[1.0][term].item(), rel=1e-6)
+
+
 def test_filter_step():
     model = make_model((3, 32, 32))
     n = 4
