@@ -60,11 +60,11 @@ def held_out_windows(env_id: str, hyperparams: dict, steps: int) -> SequenceBatc
     return buffer.gather(th.as_tensor(np.stack([windows, np.zeros_like(windows)], axis=-1)).to(buffer.device))
 
 
-def reward_r2(model: DSSLAC, windows: SequenceBatch, chunk: int = 256) -> dict[str, float]:
+def reward_r2(model: DSSLAC, windows: SequenceBatch, chunk: int = 256) -> dict[str, float | None]:
     """
     R^2 of the reward decoder's means on ``windows`` (posterior latents of each window; all its transitions): over all
     transitions, and over those whose two frames both show the goal (at least 10 green pixels), where the frames hold
-    what the reward depends on.
+    what the reward depends on (None: fewer than two such transitions).
     """
     latent, predictions = model.policy.latent, []
     with th.no_grad():
@@ -79,7 +79,9 @@ def reward_r2(model: DSSLAC, windows: SequenceBatch, chunk: int = 256) -> dict[s
     in_view = th.as_tensor((goal_pixels[:, :-1] >= 10) & (goal_pixels[:, 1:] >= 10))
     errors, rewards = (th.cat(predictions) - windows.rewards).pow(2), windows.rewards
 
-    def r2(mask: th.Tensor) -> float:
+    def r2(mask: th.Tensor) -> float | None:
+        if int(mask.sum()) < 2:
+            return None
         return round(float(1.0 - errors[mask].mean() / rewards[mask].var()), 3)
 
     share = round(float(in_view.float().mean()), 3)
