@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 TINY = [
     "--env", "tests.registered_envs:HazardPoint-v0", "--preset", "cpu", "--obs-type", "state", "--sim-steps", "200",
@@ -59,6 +61,13 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     wall, cpu = (float(cell) for cell in row.strip("|").split("|")[-2:])
     assert 0 < cpu <= 2 * wall  # one torch thread: at most the process's own core plus its render and data threads
 
+    command = [sys.executable, "benchmarks/belief_probe.py", str(tmp_path / "runs" / "seed3"), "--windows", "100"]
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300, check=False)
+    assert result.returncode == 0, result.stdout + result.stderr
+    rows = {line.split("|")[1].strip(): line for line in result.stdout.splitlines() if line.startswith("| ")}
+    assert {"goal in view", "goal column", "hazard pixels"} <= set(rows)
+    assert "of the frames" in result.stdout
+
 
 def test_reconstruction_speed_probes_the_latent_model_at_each_checkpoint(tmp_path) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
@@ -71,3 +80,20 @@ def test_reconstruction_speed_probes_the_latent_model_at_each_checkpoint(tmp_pat
     assert all(0.0 <= row["mean_abs_error"]["all"] <= 1.0 for row in rows)
     assert all(row["reward_r2"]["all"] <= 1.0 and 0.0 <= row["reward_r2"]["share_in_view"] <= 1.0 for row in rows)
     assert (tmp_path / "beliefs_2.png").is_file() and (tmp_path / "beliefs_5.png").is_file()
+
+
+def test_belief_probe_scores_a_linear_readout_near_one_and_noise_near_zero(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    from belief_probe import frame_targets, ridge_r2
+
+    rng = np.random.default_rng(0)
+    inputs = rng.normal(size=(600, 5))
+    assert ridge_r2(inputs, inputs @ np.arange(1.0, 6.0) + 3.0) > 0.999
+    assert ridge_r2(inputs, rng.normal(size=600)) < 0.05
+
+    frames = np.full((2, 64, 64, 3), 180, dtype=np.uint8)
+    frames[0, 30:40, 10:14] = (100, 230, 100)  # 40 green pixels, columns 10-13
+    targets = frame_targets(frames)
+    assert targets["goal in view"].tolist() == [1.0, 0.0] and targets["goal pixels"].tolist() == [40.0, 0.0]
+    assert targets["goal column"][0] == 11.5 and np.isnan(targets["goal column"][1])
+    assert targets["hazard in view"].tolist() == [0.0, 0.0]

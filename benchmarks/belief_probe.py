@@ -1,0 +1,107 @@
+"""
+Does a pixel agent's belief hold the goal and the hazards? Linear probes on a finished ``train`` run: windows drawn
+from the run's last replay-buffer checkpoint, each filtered by the run's latent model; a ridge regression from the belief
+z of the window's last frame (and, for comparison, from that frame's encoder feature) to what the frame shows: whether
+the goal (green pixels) is in view, how many goal pixels there are, the goal's mean column where it is in view, and the
+same for the hazards (blue). R^2 on a held-out third of the windows: 1 is a linear readout, 0 is no better than the mean.
+
+    python benchmarks/belief_probe.py runs/<run>      # a run of `python -m sb3_dsslac train --obs-type pixels`
+
+The encoder feature sees only the frame; the belief adds the filter's memory but passes through the latent bottleneck.
+"""
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch as th
+from machine import cpu_model
+from reconstruction_speed import object_masks
+
+from sb3_dsslac import DSSLAC
+from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint
+
+MIN_PIXELS = 10  # an object is "in view" with at least this many of its pixels
+
+
+def ridge_r2(inputs: np.ndarray, targets: np.ndarray, l2: float = 1e-2) -> float:
+    """
+    Held-out R^2 of a ridge regression (with intercept) fitted on the first two thirds of the rows.
+
+    :param inputs: (N, D) features
+    :param targets: (N,) values
+    :param l2: ridge penalty on the weights
+    """
+    n_fit = 2 * len(targets) // 3
+    design = np.concatenate([inputs, np.ones((len(targets), 1))], axis=1).astype(np.float64)
+    fit, test = design[:n_fit], design[n_fit:]
+    weights = np.linalg.solve(fit.T @ fit + l2 * np.eye(design.shape[1]), fit.T @ targets[:n_fit])
+    residual = ((test @ weights - targets[n_fit:]) ** 2).mean()
+    return float(1.0 - residual / max(float(targets[n_fit:].var()), 1e-12))
+
+
+def frame_targets(frames: np.ndarray) -> dict[str, np.ndarray]:
+    """(N, H, W, 3) uint8 frames -> per object: in-view flag, pixel count and mean column (NaN where not in view)."""
+    targets = {}
+    columns = np.arange(frames.shape[2])
+    for name, mask in object_masks(frames).items():
+        count = mask.sum(axis=(1, 2))
+        in_view = count >= MIN_PIXELS
+        column = np.where(in_view, (mask.sum(axis=1) * columns).sum(axis=1) / np.maximum(count, 1), np.nan)
+        targets[f"{name} in view"], targets[f"{name} pixels"], targets[f"{name} column"] = in_view * 1.0, count * 1.0, column
+    return targets
+
+
+def probe(model: DSSLAC, n_windows: int, chunk: int = 100) -> tuple[dict[str, dict[str, float | None]], dict[str, float]]:
+    """R^2 of each target from the belief and from the encoder feature, and the share of frames showing each object."""
+    latent, buffer = model.policy.latent, model.replay_buffer
+    beliefs, features, frames = [], [], []
+    with th.no_grad():
+        for _ in range(n_windows // chunk):
+            batch = buffer.gather(buffer.sample_indices(1, chunk)[0])
+            window_features = latent.encode(model.policy.preprocess(batch.observations))
+            beliefs.append(latent.latents_from_features(window_features, batch.actions)[:, -1].cpu().numpy())
+            features.append(window_features[:, -1].cpu().numpy())
+            frames.append(batch.observations[:, -1].permute(0, 2, 3, 1).cpu().numpy())
+    inputs = {"belief z": np.concatenate(beliefs), "encoder feature": np.concatenate(features)}
+    targets = frame_targets(np.concatenate(frames))
+    scores: dict[str, dict[str, float | None]] = {}
+    for target_name, values in targets.items():
+        rows = ~np.isnan(values)
+        scores[target_name] = {
+            input_name: round(ridge_r2(x[rows], values[rows]), 3) if rows.sum() >= 30 else None
+            for input_name, x in inputs.items()
+        }
+    shares = {name.removesuffix(" in view"): float(v.mean()) for name, v in targets.items() if name.endswith(" in view")}
+    return scores, shares
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="a train run folder (model.zip and checkpoints/)")
+    parser.add_argument("--windows", type=int, default=3000, help="windows drawn from the replay buffer")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    checkpoint = find_checkpoint(args.run)
+    if checkpoint is None:
+        raise SystemExit(f"{args.run} has no checkpoint with a replay buffer (checkpoints/dsslac_replay_buffer_*.pkl)")
+    th.set_num_threads(1)
+    th.manual_seed(args.seed)
+    np.random.seed(args.seed)
+    model_path = args.run / FINAL_MODEL if (args.run / FINAL_MODEL).is_file() else checkpoint.model
+    model = DSSLAC.load(model_path, device="cpu")
+    if len(model.policy.latent.observation_shape) != 3:
+        raise SystemExit(f"{args.run} is not a pixel run: its observations are {model.policy.latent.observation_shape}")
+    model.load_replay_buffer(checkpoint.replay_buffer)
+    scores, shares = probe(model, args.windows)
+    where = f"buffer at {checkpoint.timesteps:,} agent steps, {args.windows} windows"
+    print(f"{args.run}: {model_path.name}, {where}, {cpu_model()}")
+    print(", ".join(f"{name} in view in {share:.1%} of the frames" for name, share in shares.items()))
+    print("\n| held-out R^2 of | from the belief z | from the encoder feature |\n|---|---:|---:|")
+    for target_name, row in scores.items():
+        cells = [f"{value:.3f}" if value is not None else "n/a" for value in row.values()]
+        print(f"| {target_name} | {' | '.join(cells)} |")
+
+
+if __name__ == "__main__":
+    main()
