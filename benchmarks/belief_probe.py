@@ -16,12 +16,20 @@ from pathlib import Path
 import numpy as np
 import torch as th
 from machine import cpu_model
-from reconstruction_speed import object_masks
 
 from sb3_dsslac import DSSLAC
 from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint
 
 MIN_PIXELS = 10  # an object is "in view" with at least this many of its pixels
+
+
+def object_masks(frames: np.ndarray) -> dict[str, np.ndarray]:
+    """(T, H, W, 3) uint8 frames -> boolean (T, H, W) masks of the hazard (blue) and goal (green) pixels."""
+    red, green, blue = np.moveaxis(frames.astype(np.float32) / 255.0, -1, 0)
+    return {
+        "hazard": (blue > red + 0.2) & (blue > green + 0.2),
+        "goal": (green > red + 0.15) & (green > blue + 0.15),
+    }
 
 
 def ridge_r2(inputs: np.ndarray, targets: np.ndarray, l2: float = 1e-2) -> float:

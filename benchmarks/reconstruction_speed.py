@@ -4,7 +4,9 @@ training alone (no actor-critic) on a buffer of random-policy pixel frames, prob
 updates: the mean absolute reconstruction error (in [0, 1]) of the filter's beliefs along three deterministic
 evaluation episodes, over the hazard pixels (blue), the goal pixels (green) and all pixels; the reward decoder's R^2
 on held-out random-policy windows (another env seed: the reward says how far the robot moved toward the goal, so it
-measures how much of the goal the latent holds); and a ``beliefs.png`` of the first episode at each checkpoint.
+measures how much of the goal the latent holds); the R^2 of linear readouts of the goal's and the hazards' column from
+the belief and from the encoder feature (``belief_probe.py``, on the training windows); and a ``beliefs.png`` of the
+first episode at each checkpoint.
 
     python benchmarks/reconstruction_speed.py                                  # cpu_pixels, 20k random steps
     python benchmarks/reconstruction_speed.py --hyperparams image_noise=0.4    # the thesis's likelihood variance
@@ -19,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch as th
+from belief_probe import object_masks, probe
 from machine import cpu_model
 
 from sb3_dsslac import DSSLAC
@@ -27,15 +30,6 @@ from sb3_dsslac.beliefs import EpisodeBeliefs, episode_beliefs, plot_beliefs
 from sb3_dsslac.envs import make_env
 from sb3_dsslac.presets import preset_hyperparams
 from sb3_dsslac.runs import parse_hyperparams
-
-
-def object_masks(frames: np.ndarray) -> dict[str, np.ndarray]:
-    """(T, H, W, 3) uint8 frames -> boolean (T, H, W) masks of the hazard (blue) and goal (green) pixels."""
-    red, green, blue = np.moveaxis(frames.astype(np.float32) / 255.0, -1, 0)
-    return {
-        "hazard": (blue > red + 0.2) & (blue > green + 0.2),
-        "goal": (green > red + 0.15) & (green > blue + 0.15),
-    }
 
 
 def reconstruction_errors(episodes: list[EpisodeBeliefs]) -> dict[str, float | None]:
@@ -96,6 +90,7 @@ def main() -> None:
     parser.add_argument("--random-steps", type=int, default=20_000, help="agent steps of random-policy frames")
     parser.add_argument("--checkpoints", type=int, nargs="+", default=[1000, 2000, 4000, 7000, 10000, 14000, 20000])
     parser.add_argument("--held-out-steps", type=int, default=2_000, help="random agent steps of the reward R^2 windows")
+    parser.add_argument("--probe-windows", type=int, default=1_000, help="replay windows of the linear readouts")
     parser.add_argument("--episode-steps", type=int, default=150, help="agent steps of each probe episode")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/reconstruction_speed"))
     args = parser.parse_args()
@@ -121,9 +116,11 @@ def main() -> None:
         seconds = time.perf_counter() - start
         done = target
         episodes = [episode_beliefs(model, args.env, seed=10_000 + index, max_steps=args.episode_steps) for index in range(3)]
+        scores, _ = probe(model, args.probe_windows)
         plot_beliefs(episodes[0], args.out / f"beliefs_{done}.png", title=f"after {done:,} latent updates")
         row = {"latent_updates": done, "updates_per_s": round(n_updates / seconds, 2)}
         row["reward_r2"] = reward_r2(model, windows)
+        row["readout_r2"] = {name: scores[name] for name in ("goal column", "hazard column")}
         print(json.dumps({**row, "mean_abs_error": reconstruction_errors(episodes)}), flush=True)
 
 

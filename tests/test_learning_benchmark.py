@@ -72,13 +72,15 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
 def test_reconstruction_speed_probes_the_latent_model_at_each_checkpoint(tmp_path) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
     command = [sys.executable, "benchmarks/reconstruction_speed.py", "--random-steps", "120", "--checkpoints", "2", "5"]
-    command += ["--episode-steps", "6", "--held-out-steps", "30", "--hyperparams", "sequence_length=3", "--out", str(tmp_path)]
+    command += ["--episode-steps", "6", "--held-out-steps", "30", "--probe-windows", "100"]
+    command += ["--hyperparams", "sequence_length=3", "--out", str(tmp_path)]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
     rows = [json.loads(line) for line in result.stdout.splitlines() if line.startswith("{")]
     assert [row["latent_updates"] for row in rows] == [2, 5]
     assert all(0.0 <= row["mean_abs_error"]["all"] <= 1.0 for row in rows)
     assert all(row["reward_r2"]["all"] <= 1.0 and 0.0 <= row["reward_r2"]["share_in_view"] <= 1.0 for row in rows)
+    assert all(set(row["readout_r2"]) == {"goal column", "hazard column"} for row in rows)
     assert (tmp_path / "beliefs_2.png").is_file() and (tmp_path / "beliefs_5.png").is_file()
 
 
