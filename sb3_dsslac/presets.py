@@ -78,7 +78,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     #   instead of 352;
     # - 7 updates every 80 agent steps instead of 1 per step: about 12k updates in 150k agent steps, what fits beside
     #   acting (about 6 ms per agent step, render included) and 12 evaluations of 10 episodes; 12 updates took 75 CPU
-    #   minutes and left the reward at the random level too (0.16, 2 seeds);
+    #   minutes and left the reward at the random level too (0.16, 2 seeds), as did the multiplier held near 0 (-0.13);
     # - likelihood variance 0.1 instead of 0.4, and latent step size 1e-3 instead of 1e-4: at the thesis's values the
     #   reconstructions after 25k agent steps held the floor, the sky and the robot but neither the hazards nor the
     #   goal (`python -m sb3_dsslac beliefs`), so the reward and the cost had nothing to go on; after 3k latent-only
