@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch as th
-from belief_probe import object_masks, probe
+from belief_probe import MIN_PIXELS, object_masks, probe
 from machine import cpu_model
 
 from sb3_dsslac import DSSLAC
@@ -57,7 +57,7 @@ def held_out_windows(env_id: str, hyperparams: dict, steps: int) -> SequenceBatc
 def reward_r2(model: DSSLAC, windows: SequenceBatch, chunk: int = 256) -> dict[str, float | None]:
     """
     R^2 of the reward decoder's means on ``windows`` (posterior latents of each window; all its transitions): over all
-    transitions, and over those whose two frames both show the goal (at least 10 green pixels), where the frames hold
+    transitions, and over those whose two frames both show the goal (``MIN_PIXELS`` green pixels), where the frames hold
     what the reward depends on (None: fewer than two such transitions).
     """
     latent, predictions = model.policy.latent, []
@@ -70,7 +70,7 @@ def reward_r2(model: DSSLAC, windows: SequenceBatch, chunk: int = 256) -> dict[s
             predictions.append(mean.squeeze(-1))
     frames = windows.observations.permute(0, 1, 3, 4, 2).numpy()  # (B, L+1, H, W, C)
     goal_pixels = object_masks(frames.reshape(-1, *frames.shape[2:]))["goal"].sum(axis=(1, 2)).reshape(frames.shape[:2])
-    in_view = th.as_tensor((goal_pixels[:, :-1] >= 10) & (goal_pixels[:, 1:] >= 10))
+    in_view = th.as_tensor((goal_pixels[:, :-1] >= MIN_PIXELS) & (goal_pixels[:, 1:] >= MIN_PIXELS))
     errors, rewards = (th.cat(predictions) - windows.rewards).pow(2), windows.rewards
 
     def r2(mask: th.Tensor) -> float | None:
