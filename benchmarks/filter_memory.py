@@ -1,0 +1,161 @@
+"""
+How much does a pixel agent's belief remember? The actor and the critics are trained on beliefs filtered over a
+replay window of ``sequence_length`` frames, but act on the online filter's belief, carried from the episode's first
+frame (REFERENCE_IMPLS, "sequence-window versus online-filter mismatch"). Along episodes of the agent's own stochastic
+policy, this prints:
+
+- how far the episode-long filter's belief is from the belief filtered over only the last k frames, as a share of the
+  belief's variance (filter means on both sides, so that sampling noise does not count): near 0 already at small k
+  means the belief is a function of the last few frames, and the window/online mismatch does not matter;
+- whether the belief remembers the goal once it has left the view: the held-out R^2 of a ridge readout of the goal's
+  last seen column, on frames 1-10 agent steps after it was last in view, from the belief z and, for comparison, from
+  the current frame's encoder feature (which cannot see it).
+
+    python benchmarks/filter_memory.py runs/<run>          # a run of `python -m sb3_dsslac train --obs-type pixels`
+    python benchmarks/filter_memory.py model.zip --episodes 10
+"""
+
+import argparse
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch as th
+from belief_probe import MIN_PIXELS, object_masks, ridge_r2
+from machine import cpu_model
+
+from sb3_dsslac import DSSLAC
+from sb3_dsslac.envs import make_env
+from sb3_dsslac.runs import FINAL_MODEL
+
+GOAL_MEMORY_STEPS = 10  # the goal-memory readout uses frames at most this many agent steps after the goal left the view
+
+
+class FilteredEpisode(NamedTuple):
+    """One episode of ``T`` frames as the agent filtered it."""
+
+    features: th.Tensor  # (T, F) encoder features
+    actions: th.Tensor  # (T - 1, A) actions between the frames, scaled to [-1, 1]
+    beliefs: th.Tensor  # (T, Z) the online filter's means along the episode (same frames and actions)
+    frames: np.ndarray  # (T, H, W, 3) uint8
+
+
+def filtered_episode(model: DSSLAC, env_id: str, seed: int) -> FilteredEpisode:
+    """Run one episode with the agent's stochastic policy (sampled filter, as it acts while training)."""
+    policy, latent = model.policy, model.policy.latent
+    env = make_env(env_id, "pixels")
+    policy.set_training_mode(False)
+    features, actions, beliefs, frames = [], [], [], []
+    observation, _ = env.reset(seed=seed)
+    sampled_z2, action = policy.initial_state(1)
+    mean_z2 = sampled_z2.clone()
+    start = th.ones(1, dtype=th.bool)
+    done = False
+    with th.inference_mode():
+        while not done:
+            frames.append(observation)
+            image, _ = policy.obs_to_tensor(observation)  # SB3's: channels first, batch of one
+            feature = latent.encode(policy.preprocess(image).unsqueeze(1)).squeeze(1)  # type: ignore[arg-type]
+            z1, sampled_z2 = latent.filter_step(feature, sampled_z2, action, start)
+            mean_z1, mean_z2 = latent.filter_step(feature, mean_z2, action, start, deterministic=True)
+            action = policy.actor(th.cat([z1, sampled_z2], dim=-1))
+            features.append(feature[0])
+            beliefs.append(th.cat([mean_z1, mean_z2], dim=-1)[0])
+            actions.append(action[0])
+            observation, _, terminated, truncated, _ = env.step(policy.unscale_action(action.numpy())[0])
+            done = terminated or truncated
+            start = th.zeros(1, dtype=th.bool)
+    env.close()
+    return FilteredEpisode(th.stack(features), th.stack(actions[:-1]), th.stack(beliefs), np.stack(frames))
+
+
+def window_beliefs(model: DSSLAC, episode: FilteredEpisode, frames: int) -> th.Tensor:
+    """
+    Posterior means of each frame's belief filtered over only its last ``frames`` frames: (T - frames + 1, Z), for the
+    frames ``frames - 1`` to ``T - 1``, as a replay window of ``frames`` frames gives its last frame.
+    """
+    count = len(episode.features) - frames + 1
+    starts = th.arange(count).unsqueeze(1)
+    window_features = episode.features[starts + th.arange(frames)]
+    window_actions = episode.actions[starts + th.arange(frames - 1)]
+    latent = model.policy.latent
+    zeros = (th.zeros(frames, count, latent.z1_dim), th.zeros(frames, count, latent.z2_dim))
+    with th.inference_mode():
+        rollout = latent.posterior(window_features, window_actions, noise=zeros)
+    return th.cat([rollout.z1, rollout.z2], dim=-1)[:, -1]
+
+
+def mismatch_share(model: DSSLAC, episodes: list[FilteredEpisode], frames: int) -> float:
+    """Mean squared distance between online and ``frames``-frame window beliefs over the online beliefs' variance."""
+    online = th.cat([episode.beliefs[frames - 1 :] for episode in episodes])
+    windowed = th.cat([window_beliefs(model, episode, frames) for episode in episodes])
+    spread = (online - online.mean(dim=0)).pow(2).sum(dim=-1).mean()
+    return float((online - windowed).pow(2).sum(dim=-1).mean() / spread)
+
+
+def goal_memory_rows(episode: FilteredEpisode) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Frames 1-``GOAL_MEMORY_STEPS`` agent steps after the goal was last in view: their indices, and the goal's mean column
+    in the last frame that showed it.
+    """
+    goal = object_masks(episode.frames)["goal"]
+    count = goal.sum(axis=(1, 2))
+    in_view = count >= MIN_PIXELS
+    columns = (goal.sum(axis=1) * np.arange(goal.shape[2])).sum(axis=1) / np.maximum(count, 1)
+    rows, targets = [], []
+    last_seen = None
+    for index, visible in enumerate(in_view):
+        if visible:
+            last_seen = index
+        elif last_seen is not None and index - last_seen <= GOAL_MEMORY_STEPS:
+            rows.append(index)
+            targets.append(columns[last_seen])
+    return np.asarray(rows, dtype=np.int64), np.asarray(targets, dtype=np.float64)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("model", type=Path, help="a train run folder (its model.zip) or a saved model")
+    parser.add_argument("--env", default="SafetyGym/PointGoal1-v0")
+    parser.add_argument("--episodes", type=int, default=6, help="episodes of the agent's stochastic policy")
+    parser.add_argument("--seed", type=int, default=10_000, help="reset seed of the first episode (then +1 each)")
+    parser.add_argument("--windows", type=int, nargs="+", default=[1, 2, 4, 10, 20], help="window lengths k, in frames")
+    # (the training window's length is always among them)
+    args = parser.parse_args()
+    path = args.model / FINAL_MODEL if args.model.is_dir() else args.model
+    if not path.is_file():
+        raise SystemExit(f"{args.model}: no saved model ({FINAL_MODEL} of a finished run, or a model's .zip)")
+    th.set_num_threads(1)
+    th.manual_seed(args.seed)
+    model = DSSLAC.load(path, device="cpu")
+    if len(model.policy.latent.observation_shape) != 3:
+        raise SystemExit(f"{path} is not a pixel agent: its observations are {model.policy.latent.observation_shape}")
+    episodes = [filtered_episode(model, args.env, args.seed + index) for index in range(args.episodes)]
+    frames = sum(len(episode.features) for episode in episodes)
+    training_window = model.sequence_length  # transitions per replay window: z has that many frames behind it
+    print(f"{path}: {args.episodes} episodes ({frames} frames) of its stochastic policy on {args.env}, {cpu_model()}")
+    print(f"training windows: {training_window} frames for z, {training_window + 1} for the next z\n")
+    print("| window, frames | online-vs-window distance, share of the belief's variance |\n|---:|---:|")
+    for length in sorted({*args.windows, training_window}):
+        if length < 1 or length > min(len(episode.features) for episode in episodes):
+            raise SystemExit(f"--windows: {length} is not between 1 and the shortest episode's frame count")
+        print(f"| {length} | {mismatch_share(model, episodes, length):.3f} |")
+
+    inputs: dict[str, list[np.ndarray]] = {"belief z": [], "encoder feature": []}
+    targets = []
+    for episode in episodes:
+        rows, columns = goal_memory_rows(episode)
+        inputs["belief z"].append(episode.beliefs[rows].numpy())
+        inputs["encoder feature"].append(episode.features[rows].numpy())
+        targets.append(columns)
+    values = np.concatenate(targets)
+    print(f"\nGoal memory: {len(values)} frames 1-{GOAL_MEMORY_STEPS} agent steps after the goal left the view")
+    if len(values) < 30:
+        print("too few for a readout; run more --episodes")
+        return
+    for name, rows in inputs.items():
+        print(f"held-out R^2 of its last seen column from the {name}: {ridge_r2(np.concatenate(rows), values):.3f}")
+
+
+if __name__ == "__main__":
+    main()
