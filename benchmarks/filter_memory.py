@@ -2,14 +2,10 @@
 How much does a pixel agent's belief remember? The actor and the critics are trained on beliefs filtered over a
 replay window of ``sequence_length`` frames, but act on the online filter's belief, carried from the episode's first
 frame (REFERENCE_IMPLS, "sequence-window versus online-filter mismatch"). Along episodes of the agent's own stochastic
-policy, this prints:
-
-- how far the episode-long filter's belief is from the belief filtered over only the last k frames, as a share of the
-  belief's variance (filter means on both sides, so that sampling noise does not count): near 0 already at small k
-  means the belief is a function of the last few frames, and the window/online mismatch does not matter;
-- whether the belief remembers the goal once it has left the view: the held-out R^2 of a ridge readout of the goal's
-  last seen column, on frames 1-10 agent steps after it was last in view, from the belief z and, for comparison, from
-  the current frame's encoder feature (which cannot see it).
+policy, this prints how far the episode-long filter's belief is from the belief filtered over only the last k frames,
+as a share of the belief's variance (filter means on both sides, so that sampling noise does not count). Near 0
+already at a small k means that the belief is a function of the last k frames: what left the view earlier (the goal,
+once the robot turns away) is forgotten, and the window/online mismatch does not matter.
 
     python benchmarks/filter_memory.py runs/<run>          # a run of `python -m sb3_dsslac train --obs-type pixels`
     python benchmarks/filter_memory.py model.zip --episodes 10
@@ -19,16 +15,12 @@ import argparse
 from pathlib import Path
 from typing import NamedTuple
 
-import numpy as np
 import torch as th
-from belief_probe import MIN_PIXELS, object_masks, ridge_r2
 from machine import cpu_model
 
 from sb3_dsslac import DSSLAC
 from sb3_dsslac.envs import make_env
 from sb3_dsslac.runs import FINAL_MODEL
-
-GOAL_MEMORY_STEPS = 10  # the goal-memory readout uses frames at most this many agent steps after the goal left the view
 
 
 class FilteredEpisode(NamedTuple):
@@ -37,7 +29,6 @@ class FilteredEpisode(NamedTuple):
     features: th.Tensor  # (T, F) encoder features
     actions: th.Tensor  # (T - 1, A) actions between the frames, scaled to [-1, 1]
     beliefs: th.Tensor  # (T, Z) the online filter's means along the episode (same frames and actions)
-    frames: np.ndarray  # (T, H, W, 3) uint8
 
 
 def filtered_episode(model: DSSLAC, env_id: str, seed: int) -> FilteredEpisode:
@@ -45,7 +36,7 @@ def filtered_episode(model: DSSLAC, env_id: str, seed: int) -> FilteredEpisode:
     policy, latent = model.policy, model.policy.latent
     env = make_env(env_id, "pixels")
     policy.set_training_mode(False)
-    features, actions, beliefs, frames = [], [], [], []
+    features, actions, beliefs = [], [], []
     observation, _ = env.reset(seed=seed)
     sampled_z2, action = policy.initial_state(1)
     mean_z2 = sampled_z2.clone()
@@ -53,7 +44,6 @@ def filtered_episode(model: DSSLAC, env_id: str, seed: int) -> FilteredEpisode:
     done = False
     with th.inference_mode():
         while not done:
-            frames.append(observation)
             image, _ = policy.obs_to_tensor(observation)  # SB3's: channels first, batch of one
             feature = latent.encode(policy.preprocess(image).unsqueeze(1)).squeeze(1)  # type: ignore[arg-type]
             z1, sampled_z2 = latent.filter_step(feature, sampled_z2, action, start)
@@ -66,7 +56,7 @@ def filtered_episode(model: DSSLAC, env_id: str, seed: int) -> FilteredEpisode:
             done = terminated or truncated
             start = th.zeros(1, dtype=th.bool)
     env.close()
-    return FilteredEpisode(th.stack(features), th.stack(actions[:-1]), th.stack(beliefs), np.stack(frames))
+    return FilteredEpisode(th.stack(features), th.stack(actions[:-1]), th.stack(beliefs))
 
 
 def window_beliefs(model: DSSLAC, episode: FilteredEpisode, frames: int) -> th.Tensor:
@@ -91,26 +81,6 @@ def mismatch_share(model: DSSLAC, episodes: list[FilteredEpisode], frames: int) 
     windowed = th.cat([window_beliefs(model, episode, frames) for episode in episodes])
     spread = (online - online.mean(dim=0)).pow(2).sum(dim=-1).mean()
     return float((online - windowed).pow(2).sum(dim=-1).mean() / spread)
-
-
-def goal_memory_rows(episode: FilteredEpisode) -> tuple[np.ndarray, np.ndarray]:
-    """
-    Frames 1-``GOAL_MEMORY_STEPS`` agent steps after the goal was last in view: their indices, and the goal's mean column
-    in the last frame that showed it.
-    """
-    goal = object_masks(episode.frames)["goal"]
-    count = goal.sum(axis=(1, 2))
-    in_view = count >= MIN_PIXELS
-    columns = (goal.sum(axis=1) * np.arange(goal.shape[2])).sum(axis=1) / np.maximum(count, 1)
-    rows, targets = [], []
-    last_seen = None
-    for index, visible in enumerate(in_view):
-        if visible:
-            last_seen = index
-        elif last_seen is not None and index - last_seen <= GOAL_MEMORY_STEPS:
-            rows.append(index)
-            targets.append(columns[last_seen])
-    return np.asarray(rows, dtype=np.int64), np.asarray(targets, dtype=np.float64)
 
 
 def main() -> None:
@@ -140,21 +110,6 @@ def main() -> None:
         if length < 1 or length > min(len(episode.features) for episode in episodes):
             raise SystemExit(f"--windows: {length} is not between 1 and the shortest episode's frame count")
         print(f"| {length} | {mismatch_share(model, episodes, length):.3f} |")
-
-    inputs: dict[str, list[np.ndarray]] = {"belief z": [], "encoder feature": []}
-    targets = []
-    for episode in episodes:
-        rows, columns = goal_memory_rows(episode)
-        inputs["belief z"].append(episode.beliefs[rows].numpy())
-        inputs["encoder feature"].append(episode.features[rows].numpy())
-        targets.append(columns)
-    values = np.concatenate(targets)
-    print(f"\nGoal memory: {len(values)} frames 1-{GOAL_MEMORY_STEPS} agent steps after the goal left the view")
-    if len(values) < 30:
-        print("too few for a readout; run more --episodes")
-        return
-    for name, rows in inputs.items():
-        print(f"held-out R^2 of its last seen column from the {name}: {ridge_r2(np.concatenate(rows), values):.3f}")
 
 
 if __name__ == "__main__":

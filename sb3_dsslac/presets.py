@@ -75,7 +75,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     # - the small latent and networks of cpu_learning (z 16 + 64, feature 64, hidden 128, 32 quantiles and cosines):
     #   cheaper filter steps when acting; the update's time is the convolutions' anyway;
     # - sequences of 4 frames, latent batch 16, actor-critic batch 32: 80 frames through the decoder per update
-    #   instead of 352;
+    #   instead of 352; the thesis's sequences of 10 took 88-96 minutes and learned no more reward (0.74, 2 seeds), and
+    #   their beliefs still forget all but the last 2-4 frames (benchmarks/filter_memory.py);
     # - 7 updates every 80 agent steps instead of 1 per step: about 12k updates in 150k agent steps, what fits beside
     #   acting (about 6 ms per agent step, render included) and 12 evaluations of 10 episodes; 12 updates took 75 CPU
     #   minutes and left the reward at the random level too (0.16, 2 seeds), as did the multiplier held near 0 (-0.13);
