@@ -37,25 +37,28 @@ def filtered_episode(model: DSSLAC, env_id: str, seed: int) -> FilteredEpisode:
     env = make_env(env_id, "pixels")
     policy.set_training_mode(False)
     features, actions, beliefs = [], [], []
-    observation, _ = env.reset(seed=seed)
     sampled_z2, action = policy.initial_state(1)
     mean_z2 = sampled_z2.clone()
     start = th.ones(1, dtype=th.bool)
     done = False
-    with th.inference_mode():
-        while not done:
-            image, _ = policy.obs_to_tensor(observation)  # SB3's: channels first, batch of one
-            feature = latent.encode(policy.preprocess(image).unsqueeze(1)).squeeze(1)  # type: ignore[arg-type]
-            z1, sampled_z2 = latent.filter_step(feature, sampled_z2, action, start)
-            mean_z1, mean_z2 = latent.filter_step(feature, mean_z2, action, start, deterministic=True)
-            action = policy.actor(th.cat([z1, sampled_z2], dim=-1))
-            features.append(feature[0])
-            beliefs.append(th.cat([mean_z1, mean_z2], dim=-1)[0])
-            actions.append(action[0])
-            observation, _, terminated, truncated, _ = env.step(policy.unscale_action(action.numpy())[0])
-            done = terminated or truncated
-            start = th.zeros(1, dtype=th.bool)
-    env.close()
+    try:
+        observation, _ = env.reset(seed=seed)
+        with th.inference_mode():
+            while not done:
+                image, _ = policy.obs_to_tensor(observation)  # SB3's: channels first, batch of one
+                # belief_step would encode the frame once per filter; both filters share this feature
+                feature = latent.encode(policy.preprocess(image).unsqueeze(1)).squeeze(1)  # type: ignore[arg-type]
+                z1, sampled_z2 = latent.filter_step(feature, sampled_z2, action, start)
+                mean_z1, mean_z2 = latent.filter_step(feature, mean_z2, action, start, deterministic=True)
+                action = policy.actor(th.cat([z1, sampled_z2], dim=-1))
+                features.append(feature[0])
+                beliefs.append(th.cat([mean_z1, mean_z2], dim=-1)[0])
+                actions.append(action[0])
+                observation, _, terminated, truncated, _ = env.step(policy.unscale_action(action.numpy())[0])
+                done = terminated or truncated
+                start = th.zeros(1, dtype=th.bool)
+    finally:
+        env.close()
     return FilteredEpisode(th.stack(features), th.stack(actions[:-1]), th.stack(beliefs))
 
 
@@ -89,8 +92,9 @@ def main() -> None:
     parser.add_argument("--env", default="SafetyGym/PointGoal1-v0")
     parser.add_argument("--episodes", type=int, default=6, help="episodes of the agent's stochastic policy")
     parser.add_argument("--seed", type=int, default=10_000, help="reset seed of the first episode (then +1 each)")
-    parser.add_argument("--windows", type=int, nargs="+", default=[1, 2, 4, 10, 20], help="window lengths k, in frames")
-    # (the training window's length is always among them)
+    parser.add_argument(
+        "--windows", type=int, nargs="+", default=[1, 2, 4, 10, 20], help="window lengths k in frames (and the training one)"
+    )
     args = parser.parse_args()
     path = args.model / FINAL_MODEL if args.model.is_dir() else args.model
     if not path.is_file():
@@ -103,12 +107,14 @@ def main() -> None:
     episodes = [filtered_episode(model, args.env, args.seed + index) for index in range(args.episodes)]
     frames = sum(len(episode.features) for episode in episodes)
     training_window = model.sequence_length  # transitions per replay window: z has that many frames behind it
+    lengths = sorted({*args.windows, training_window})
+    shortest = min(len(episode.features) for episode in episodes)
+    if lengths[0] < 1 or lengths[-1] > shortest:
+        raise SystemExit(f"--windows: every length must be between 1 and the shortest episode's {shortest} frames")
     print(f"{path}: {args.episodes} episodes ({frames} frames) of its stochastic policy on {args.env}, {cpu_model()}")
     print(f"training windows: {training_window} frames for z, {training_window + 1} for the next z\n")
     print("| window, frames | online-vs-window distance, share of the belief's variance |\n|---:|---:|")
-    for length in sorted({*args.windows, training_window}):
-        if length < 1 or length > min(len(episode.features) for episode in episodes):
-            raise SystemExit(f"--windows: {length} is not between 1 and the shortest episode's frame count")
+    for length in lengths:
         print(f"| {length} | {mismatch_share(model, episodes, length):.3f} |")
 
 
