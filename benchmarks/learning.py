@@ -175,6 +175,7 @@ def seed_command(run_dir: Path, seed: int, args: argparse.Namespace) -> list[str
     command += ["--sim-steps", str(args.sim_steps), "--eval-every", str(args.eval_every)]
     command += ["--eval-episodes", str(args.eval_episodes), "--checkpoint-every", str(args.checkpoint_every)]
     command += ["--threads", "1", "--out", str(run_dir)]
+    command += ["--env-kwargs", *args.env_kwargs] if args.env_kwargs else []
     return command + (["--hyperparams", *args.hyperparams] if args.hyperparams else [])
 
 
@@ -370,6 +371,9 @@ def main() -> None:
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--checkpoint-every", type=int, default=20_000, help="simulator steps between checkpoints")
     parser.add_argument("--hyperparams", nargs="*", default=[], metavar="KEY=VALUE", help="DSSLAC keywords (YAML)")
+    parser.add_argument(
+        "--env-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="env keywords (YAML) on top of the preset's"
+    )
     parser.add_argument("--random-episodes", type=int, default=10)
     parser.add_argument(
         "--no-pictures", action="store_true", help="on pixels, skip beliefs.png and episode.mp4 of the first seed"
@@ -380,7 +384,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     # Overrides name the folder and the title too: a variant never overwrites its preset's results
-    variant = "".join(f"_{setting.replace('=', '_')}" for setting in args.hyperparams)
+    variant = "".join(f"_{setting.replace('=', '_')}" for setting in [*args.env_kwargs, *args.hyperparams])
     name = f"learning_{task_name(args.env)}_{args.obs_type}_{args.preset}{variant}"
     out = args.out or Path("benchmarks/results") / name
     runs_root = out / RUNS_DIR
@@ -391,7 +395,7 @@ def main() -> None:
     random = random_level(args, out)
     for seed, run in runs.items():
         write_seed_csv(out / f"seed{seed}.csv", run)
-    overrides = f" with {' '.join(args.hyperparams)}" if args.hyperparams else ""
+    overrides = f" with {' '.join([*args.env_kwargs, *args.hyperparams])}" if args.env_kwargs or args.hyperparams else ""
     title = f"{task_name(args.env)} ({args.obs_type}), preset {args.preset}{overrides}, {len(runs)} seeds"
     multipliers = {seed: read_multiplier(runs_root / f"seed{seed}") for seed in args.seeds}
     plot_seeds(out / "curves.png", runs, random, multipliers, title)

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_dsslac.dsslac import DSSLAC
-from sb3_dsslac.presets import PRESETS
+from sb3_dsslac.presets import PRESET_ENV_KWARGS, PRESETS
 from sb3_dsslac.rollouts import evaluate, format_episodes
 from sb3_dsslac.runs import TrainConfig, find_run_config, parse_hyperparams, resume, train
 
@@ -44,14 +44,26 @@ def _flag_hyperparams(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _add_model_flags(parser: argparse.ArgumentParser, threads_help: str) -> None:
+    preset_envs = "; ".join(
+        f"{name} sets {' '.join(f'{key}={value}' for key, value in env_kwargs.items())}"
+        for name, env_kwargs in PRESET_ENV_KWARGS.items()
+    )
     parser.add_argument(
         "--preset",
         choices=sorted(PRESETS),
         default="thesis",
         help="thesis: Table 5.2; thesis_fast: the same with share_latent_batch and bf16; cpu: small and quick; "
-        "cpu_learning: the CPU learning benchmark's (state); cpu_pixels: the pixel learning benchmark's",
+        "cpu_learning: the CPU learning benchmark's (state); cpu_pixels: the pixel learning benchmark's (64x64); "
+        "cpu_pixels32: the same on 32x32 frames. Env keywords of the presets (--env-kwargs replaces them): "
+        + (preset_envs or "none"),
     )
     parser.add_argument("--obs-type", choices=["pixels", "state"], help="observation type (default: the env's)")
+    parser.add_argument(
+        "--env-kwargs",
+        nargs="+",
+        metavar="KEY=VALUE",
+        help="keywords of the env as YAML, on top of the preset's: width=32 height=32 for 32x32 frames",
+    )
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--threads", type=int, help=threads_help)
     group = parser.add_argument_group("hyperparameters (on top of the preset; agent steps)")
@@ -159,6 +171,7 @@ def _train_command(args: argparse.Namespace) -> None:
             preset=args.preset,
             hyperparams=_flag_hyperparams(args),
             obs_type=args.obs_type,
+            env_kwargs=parse_hyperparams(args.env_kwargs, flag="--env-kwargs"),
             eval_every=args.eval_every,
             eval_episodes=args.eval_episodes,
             eval_deterministic=args.deterministic_eval,
@@ -245,6 +258,7 @@ def _tune_command(args: argparse.Namespace) -> None:
         preset=args.preset,
         hyperparams=_flag_hyperparams(args),
         obs_type=args.obs_type,
+        env_kwargs=parse_hyperparams(args.env_kwargs, flag="--env-kwargs"),
         n_evaluations=args.n_evaluations,
         eval_episodes=args.eval_episodes,
         device=args.device,

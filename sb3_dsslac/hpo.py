@@ -25,7 +25,7 @@ from sb3_dsslac.envs import make_env, make_eval_env
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.env_info import action_repeat_of
 from sb3_dsslac.evaluation import CostEvalCallback
-from sb3_dsslac.presets import preset_hyperparams
+from sb3_dsslac.presets import preset_env_kwargs, preset_hyperparams
 
 COST_CONSTRAINT = "eval_cost_over_budget"
 
@@ -107,6 +107,7 @@ class TuneSpec:
     :param hyperparams: fixed DSSLAC keywords on top of the preset and the sampled ones (a fixed key is not searched:
         its sampled value is ignored)
     :param obs_type: "pixels" or "state" (None: the env's default)
+    :param env_kwargs: other keywords of the env (``width=32, height=32``), on top of the preset's own
     :param n_evaluations: evaluations per trial, evenly spaced (the pruner's steps)
     :param eval_episodes: episodes per evaluation
     :param device: torch device
@@ -119,6 +120,7 @@ class TuneSpec:
     preset: str = "thesis"
     hyperparams: dict[str, Any] = field(default_factory=dict)
     obs_type: str | None = None
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
     n_evaluations: int = 4
     eval_episodes: int = 5
     device: str = "auto"
@@ -129,11 +131,12 @@ def objective(trial: optuna.Trial, spec: TuneSpec) -> float:
     """Train one sampled configuration; return the last evaluation's mean reward (the constraint is set on the trial)."""
     if spec.threads is not None:
         th.set_num_threads(spec.threads)
-    env = make_env(spec.env, spec.obs_type)
+    env_kwargs = preset_env_kwargs(spec.preset, spec.env_kwargs)
+    env = make_env(spec.env, spec.obs_type, env_kwargs=env_kwargs)
     lagrange = preset_hyperparams(spec.preset, spec.hyperparams).get("lagrange", "sgd")
     hyperparams = preset_hyperparams(spec.preset, {**sample_dsslac_params(trial, lagrange), **spec.hyperparams})
     agent_steps = max(spec.sim_steps // action_repeat_of(env), 1)
-    eval_env = make_eval_env(spec.env, seed=trial.number, obs_type=spec.obs_type)
+    eval_env = make_eval_env(spec.env, seed=trial.number, obs_type=spec.obs_type, env_kwargs=env_kwargs)
     model = DSSLAC("LatentPolicy", env, device=spec.device, **hyperparams)
     callback = TrialCostEvalCallback(
         trial,

@@ -110,6 +110,24 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+# Env keywords a preset was tuned for (``gym.make`` keywords of the task): a run with the preset uses them unless it
+# passes its own (``train --env-kwargs``)
+PRESET_ENV_KWARGS: dict[str, dict[str, Any]] = {}
+
+
+def preset_env_kwargs(name: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """
+    The env keywords of preset ``name`` with ``overrides`` on top.
+
+    :param name: a key of ``PRESETS``
+    :param overrides: env keywords that replace the preset's
+    :return: a new dict of env keywords
+    """
+    if name not in PRESETS:
+        raise ValueError(f"Unknown preset {name!r}; valid presets: {sorted(PRESETS)}")
+    return {**PRESET_ENV_KWARGS.get(name, {}), **(overrides or {})}
+
+
 def preset_hyperparams(name: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """
     The keywords of ``DSSLAC`` of preset ``name`` with ``overrides`` on top (``policy_kwargs`` merged key by key).

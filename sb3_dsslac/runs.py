@@ -22,7 +22,7 @@ from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.env_info import action_repeat_of, episode_length_of
 from sb3_dsslac.envs import make_eval_env, make_train_env
 from sb3_dsslac.evaluation import CostEvalCallback, eval_policy_name
-from sb3_dsslac.presets import PRESETS, preset_hyperparams
+from sb3_dsslac.presets import PRESETS, preset_env_kwargs, preset_hyperparams
 from sb3_dsslac.version import __version__
 
 CONFIG_FILE = "config.yaml"
@@ -54,7 +54,8 @@ class TrainConfig:
     :param preset: a name of ``sb3_dsslac.presets.PRESETS``
     :param hyperparams: DSSLAC keywords on top of the preset
     :param obs_type: "pixels" or "state" (None: the env's default)
-    :param env_kwargs: other keywords of the env
+    :param env_kwargs: other keywords of the env (``width=32, height=32``), on top of the preset's own
+        (``PRESET_ENV_KWARGS``); the config keeps the merged keywords, so a saved run names every one it used
     :param eval_every: simulator steps between evaluations
     :param eval_episodes: episodes per evaluation
     :param eval_deterministic: evaluate the policy's mean action and the filter's means; False (the thesis's protocol)
@@ -89,6 +90,9 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"Unknown preset {self.preset!r}; valid presets: {sorted(PRESETS)}")
+        if not isinstance(self.env_kwargs, dict):
+            raise ValueError(f"env_kwargs must be a mapping of env keywords, got {self.env_kwargs!r}")
+        self.env_kwargs = preset_env_kwargs(self.preset, self.env_kwargs)
         for name in ("sim_steps", "eval_every", "eval_episodes", "checkpoint_every", "n_envs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
@@ -169,13 +173,18 @@ def _make_logger(run_dir: Path, verbose: int, resume_from: int | None) -> Logger
     return Logger(str(run_dir), formats)
 
 
-def parse_hyperparams(pairs: list[str] | None) -> dict[str, Any]:
-    """``["key=value", ...]`` to a dict, each value read as YAML (``policy_kwargs="{z1_dim: 16}"``; ``1e-6`` is a float)."""
+def parse_hyperparams(pairs: list[str] | None, flag: str = "--hyperparams") -> dict[str, Any]:
+    """
+    ``["key=value", ...]`` to a dict, each value read as YAML (``policy_kwargs="{z1_dim: 16}"``; ``1e-6`` is a float).
+
+    :param pairs: the pairs as given on the command line
+    :param flag: the flag that took them, named in the error for a malformed pair
+    """
     hyperparams: dict[str, Any] = {}
     for pair in pairs or []:
         key, sep, value = pair.partition("=")
         if not sep or not key:
-            raise ValueError(f"--hyperparams takes key=value pairs, got {pair!r}")
+            raise ValueError(f"{flag} takes key=value pairs, got {pair!r}")
         hyperparams[key.strip()] = yaml.load(value, Loader=_HyperparamLoader)
     return hyperparams
 
