@@ -42,7 +42,8 @@ from sb3_dsslac.beliefs import episode_beliefs, mean_cost_probabilities, plot_be
 from sb3_dsslac.plotting import RunResults, load_run, task_name
 from sb3_dsslac.presets import preset_hyperparams
 from sb3_dsslac.rollouts import evaluate
-from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint, load_config
+from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint, load_config, read_time_account
+from sb3_dsslac.timing import ACTIVITIES
 
 
 class RecordMultiplier(BaseCallback):
@@ -342,6 +343,25 @@ def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndar
     return "\n".join(lines)
 
 
+def time_account_table(runs_root: Path, seeds: list[int]) -> str:
+    """Markdown: each seed's wall minutes by activity (its ``time_account.json``) and their share of its wall time."""
+    columns = [*ACTIVITIES, "other"]
+    lines = [
+        "| seed | " + " | ".join(name.replace("_", " ") for name in columns) + " | wall | process CPU |",
+        "|---|" + "---:|" * (len(columns) + 2),
+    ]
+    for seed in seeds:
+        account = read_time_account(runs_root / f"seed{seed}")
+        if account is None:
+            continue
+        wall = max(account["wall"], 1e-9)
+        cells = [f"{account[name] / 60:.1f} ({account[name] / wall:.0%})" for name in columns]
+        lines.append(f"| {seed} | " + " | ".join(cells) + f" | {wall / 60:.1f} | {account['cpu'] / 60:.1f} |")
+    if len(lines) == 2:
+        return ""
+    return "Minutes (share of the wall time) by activity, from each seed's `time_account.json`:\n\n" + "\n".join(lines)
+
+
 def write_pictures(out: Path, run_dir: Path, episode_seed: int) -> str:
     """``beliefs.png`` and ``episode.mp4`` of the run's final model on one evaluation episode; a line saying so."""
     config = load_config(run_dir)
@@ -400,6 +420,8 @@ def main() -> None:
     multipliers = {seed: read_multiplier(runs_root / f"seed{seed}") for seed in args.seeds}
     plot_seeds(out / "curves.png", runs, random, multipliers, title)
     table = summary_table(runs, random, runs_root)
+    account = time_account_table(runs_root, args.seeds)
+    table += f"\n\n{account}" if account else ""
     (out / "table.md").write_text(f"{title}\n\n{table}\n")
     print(f"\n{title}\n\n{table}\n\nwrote {out}/seed<S>.csv, curves.png, table.md")
     if args.obs_type == "pixels" and not args.no_pictures:

@@ -26,6 +26,7 @@ from sb3_dsslac.env_info import action_repeat_of, cost_from_info, episode_length
 from sb3_dsslac.lagrange import LAGRANGE_RULES, LagrangeCallback, inverse_softplus, sgd_lagrange_step_on_device, softplus
 from sb3_dsslac.optim import adam_step, clip_grads, init_adam_state
 from sb3_dsslac.policies import LatentPolicy
+from sb3_dsslac.timing import TimeAccount
 
 SelfDSSLAC = TypeVar("SelfDSSLAC", bound="DSSLAC")
 
@@ -313,6 +314,7 @@ class DSSLAC(OffPolicyAlgorithm):
         self.pid_state: list[float | None] = [0.0, None]  # integral, smoothed episode cost (None before the first)
         self.action_repeat = 1
         self.total_cost = 0.0
+        self.time_account = TimeAccount()  # wall seconds by activity, logged as time/<activity>_s
         # Rollout state, not saved: the training envs' filter state and running episode costs
         self._last_filter_state: tuple[th.Tensor, th.Tensor] | None = None
         self._episode_costs = np.zeros(0)
@@ -526,6 +528,11 @@ class DSSLAC(OffPolicyAlgorithm):
         buffer_action = scaled_action.cpu().numpy()
         return self.policy.unscale_action(buffer_action), buffer_action
 
+    def collect_rollouts(self, *args: Any, **kwargs: Any) -> Any:
+        """SB3's ``collect_rollouts``, its time counted as acting (callbacks that measure their own excepted)."""
+        with self.time_account.measure("acting"):
+            return super().collect_rollouts(*args, **kwargs)
+
     @property
     def _action_dim(self) -> int:
         return int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
@@ -549,6 +556,12 @@ class DSSLAC(OffPolicyAlgorithm):
         self._last_episode_starts = np.array(dones, dtype=bool)
 
     def dump_logs(self) -> None:
+        with self.time_account.measure("logging"):
+            self._dump_logs()
+
+    def _dump_logs(self) -> None:
+        for name, seconds in self.time_account.summary().items():
+            self.logger.record(f"time/{name}_s", round(seconds, 1))
         sim_steps = self.num_timesteps * self.action_repeat
         if len(self.ep_cost_buffer) > 0:
             self.logger.record("rollout/ep_cost_mean", safe_mean(list(self.ep_cost_buffer)))
@@ -867,8 +880,14 @@ class DSSLAC(OffPolicyAlgorithm):
         self._update_learning_rate(optimizers)
 
         if not self.latent_pretrained:
-            self._pretrain_latent()
+            with self.time_account.measure("latent_pretraining"):
+                self._pretrain_latent()
 
+        with self.time_account.measure("updates"):
+            self._train_burst(gradient_steps, batch_size)
+
+    def _train_burst(self, gradient_steps: int, batch_size: int) -> None:
+        """One burst of ``gradient_steps`` updates on freshly sampled windows, and its logs."""
         if self.share_latent_batch:
             windows_per_update = max(self.latent_batch_size, batch_size)
         else:
@@ -909,8 +928,10 @@ class DSSLAC(OffPolicyAlgorithm):
         compiled = self._compiled_steps.get(step.__name__)
         if compiled is None:
             return step(*args)
+        # The first call compiles (a minute or more on a CPU): its time is the compilation's
+        first_call = self.time_account.measure("compilation") if step.__name__ not in self._compiled_once else None
         try:
-            with th._dynamo.config.patch(trace_autograd_ops=True):
+            with th._dynamo.config.patch(trace_autograd_ops=True), first_call or contextlib.nullcontext():
                 if self.device.type != "cuda":
                     return compiled(*args)
                 # A CUDA graph's replay reuses its output memory: keep copies of this step's statistics
@@ -935,7 +956,7 @@ class DSSLAC(OffPolicyAlgorithm):
         progress_bar: bool = False,
     ) -> SelfDSSLAC:
         """SB3's ``learn``; with ``tf32`` on CUDA, float32 matrix products and convolutions use TF32 until it returns."""
-        with tf32_matmul(self.tf32 and self.device.type == "cuda"):
+        with tf32_matmul(self.tf32 and self.device.type == "cuda"), self.time_account.running():
             return super().learn(
                 total_timesteps=total_timesteps,
                 callback=callback,

@@ -11,6 +11,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dsslac.env_info import cost_from_info
+from sb3_dsslac.timing import measured
 
 
 class EpisodeResults(NamedTuple):
@@ -84,6 +85,11 @@ class CostEvalCallback(EvalCallback):
     def _on_step(self) -> bool:
         if self.eval_freq <= 0 or self.n_calls % self.eval_freq != 0:
             return True
+        with measured(self.model, "evaluation"):
+            return self._evaluate()
+
+    def _evaluate(self) -> bool:
+        """Evaluate, log, write ``evaluations.npz`` and keep the best model; whether training continues."""
         results = evaluate_policy_with_cost(self.model, self.eval_env, self.n_eval_episodes, self.deterministic)
         mean_reward, std_reward = float(results.rewards.mean()), float(results.rewards.std())
         mean_cost, std_cost = float(results.costs.mean()), float(results.costs.std())

@@ -107,12 +107,38 @@ PRESETS: dict[str, dict[str, Any]] = {
             "cost_critic_hidden_dim": 128,
         },
     },
+    # cpu_pixels on 32x32 frames (PRESET_ENV_KWARGS): the same code path (conv encoder and decoder, latent filter, IQN
+    # cost critic, on-policy multiplier). Being measured; see benchmarks/learning.py
+    "cpu_pixels32": {
+        "image_noise": 0.1,
+        "latent_learning_rate": 1e-3,
+        "learning_starts": 10_000,
+        "latent_pretrain_steps": 5_000,
+        "batch_size": 32,
+        "latent_batch_size": 16,
+        "sequence_length": 4,
+        "train_freq": 80,
+        "gradient_steps": 64,
+        "n_quantiles": 32,
+        "lagrange_learning_rate": 1e-3,
+        "share_latent_batch": True,
+        "compile_updates": True,
+        "policy_kwargs": {
+            "image_channels": (8, 16, 32, 64),
+            "z1_dim": 16,
+            "z2_dim": 64,
+            "feature_dim": 64,
+            "hidden_units": [128, 128],
+            "n_cosines": 32,
+            "cost_critic_hidden_dim": 128,
+        },
+    },
 }
 
 
 # Env keywords a preset was tuned for (``gym.make`` keywords of the task): a run with the preset uses them unless it
 # passes its own (``train --env-kwargs``)
-PRESET_ENV_KWARGS: dict[str, dict[str, Any]] = {}
+PRESET_ENV_KWARGS: dict[str, dict[str, Any]] = {"cpu_pixels32": {"width": 32, "height": 32}}
 
 
 def preset_env_kwargs(name: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:

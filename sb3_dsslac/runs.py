@@ -4,6 +4,7 @@ checkpoints), training and resuming. Steps of a ``TrainConfig`` are simulator st
 """
 
 import csv
+import json
 import re
 import shlex
 import sys
@@ -23,9 +24,11 @@ from sb3_dsslac.env_info import action_repeat_of, episode_length_of
 from sb3_dsslac.envs import make_eval_env, make_train_env
 from sb3_dsslac.evaluation import CostEvalCallback, eval_policy_name
 from sb3_dsslac.presets import PRESETS, preset_env_kwargs, preset_hyperparams
+from sb3_dsslac.timing import measured
 from sb3_dsslac.version import __version__
 
 CONFIG_FILE = "config.yaml"
+TIME_ACCOUNT_FILE = "time_account.json"
 FINAL_MODEL = "model.zip"
 CHECKPOINT_DIR = "checkpoints"
 CHECKPOINT_PREFIX = "dsslac"
@@ -141,11 +144,15 @@ class LatestCheckpointCallback(CheckpointCallback):
 
     def _on_step(self) -> bool:
         if self.n_calls % self.save_freq == 0:
-            super()._on_step()
-            for path in Path(self.save_path).glob(f"{self.name_prefix}_*_steps.*"):
-                if not path.stem.endswith(f"_{self.num_timesteps}_steps"):
-                    path.unlink()
+            with measured(self.model, "checkpoints"):
+                self._save_latest()
         return True
+
+    def _save_latest(self) -> None:
+        super()._on_step()
+        for path in Path(self.save_path).glob(f"{self.name_prefix}_*_steps.*"):
+            if not path.stem.endswith(f"_{self.num_timesteps}_steps"):
+                path.unlink()
 
 
 def _resumed_csv(path: Path, max_timesteps: int | None) -> CSVOutputFormat:
@@ -310,10 +317,25 @@ def _learn(model: DSSLAC, config: TrainConfig, run_dir: Path, eval_seed: int, re
             )
         model.save(run_dir / FINAL_MODEL)
     finally:
+        write_time_account(model, run_dir)
+        if config.verbose >= 1:
+            print(f"time account: {model.time_account.format()}")
         eval_env.close()
         model.logger.close()
         if model.env is not None:
             model.env.close()
+
+
+def write_time_account(model: DSSLAC, run_dir: Path) -> None:
+    """``run_dir/time_account.json``: the run's wall seconds by activity, its wall and its process's CPU seconds."""
+    summary = {name: round(seconds, 1) for name, seconds in model.time_account.summary().items()}
+    (run_dir / TIME_ACCOUNT_FILE).write_text(json.dumps(summary, indent=1) + "\n")
+
+
+def read_time_account(run_dir: str | Path) -> dict[str, float] | None:
+    """The time account a run wrote when it stopped or finished (``write_time_account``), or None."""
+    path = Path(run_dir) / TIME_ACCOUNT_FILE
+    return json.loads(path.read_text()) if path.is_file() else None
 
 
 def find_run_config(model_path: Path) -> TrainConfig | None:

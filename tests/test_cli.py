@@ -258,8 +258,11 @@ def test_train_refuses_to_overwrite_a_run(trained_run: Path) -> None:
         train(TrainConfig(env=TINY_ENV, sim_steps=10), trained_run)
 
 
-def test_pixels_safety_gym_run(tmp_path: Path) -> None:
-    """A few steps of the real pixel task through the command line: sim steps become agent steps (action repeat 2)."""
+def test_pixels_safety_gym_run(tmp_path: Path, capsys) -> None:
+    """
+    A few steps of the real pixel task through the command line at 32x32 (``--env-kwargs``): sim steps become agent
+    steps (action repeat 2), and ``evaluate`` and ``beliefs`` make the run's own 32x32 env.
+    """
     out = tmp_path / "pg1"
     flags = ["--sim-steps=120", "--eval-every=120", "--eval-episodes=1", "--checkpoint-every=120", "--preset=cpu"]
     assert (
@@ -273,6 +276,9 @@ def test_pixels_safety_gym_run(tmp_path: Path) -> None:
                 "--quiet",
                 "--no-progress-bar",
                 *flags,
+                "--env-kwargs",
+                "width=32",
+                "height=32",
                 "--learning-starts=40",
                 "--latent-pretrain-steps=2",
                 "--train-freq=20",
@@ -284,6 +290,30 @@ def test_pixels_safety_gym_run(tmp_path: Path) -> None:
     )
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["resolved"]["action_repeat"] == 2 and config["resolved"]["agent_steps"] == 60
+    assert config["env_kwargs"] == {"width": 32, "height": 32}
+    assert config["resolved"]["observation_space"] == "Box(0, 255, (32, 32, 3), uint8)"
     evaluations = np.load(out / "evaluations.npz")
     assert evaluations["timesteps"].tolist() == [60]
     assert evaluations["ep_lengths"].tolist() == [[500]]
+    capsys.readouterr()
+    assert main(["evaluate", str(out / "model.zip"), "--episodes=1"]) == 0
+    assert "episodes within the budget 25: " in capsys.readouterr().out
+    assert main(["beliefs", str(out / "model.zip"), "--steps=6", "--frames=3", "--out", str(tmp_path / "b.png")]) == 0
+    assert (tmp_path / "b.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_presets_carry_their_env_keywords() -> None:
+    assert TrainConfig(env=TINY_ENV, preset="cpu_pixels32").env_kwargs == {"width": 32, "height": 32}
+    assert TrainConfig(env=TINY_ENV, preset="cpu_pixels32", env_kwargs={"width": 64, "height": 64}).env_kwargs == {
+        "width": 64,
+        "height": 64,
+    }
+    assert TrainConfig(env=TINY_ENV, preset="cpu_pixels").env_kwargs == {}
+    with pytest.raises(ValueError, match="env_kwargs must be a mapping"):
+        TrainConfig(env=TINY_ENV, env_kwargs=["width=32"])  # type: ignore[arg-type]
+
+
+def test_train_help_names_the_presets_env_keywords(capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    assert "cpu_pixels32 sets width=32 height=32" in " ".join(capsys.readouterr().out.split())

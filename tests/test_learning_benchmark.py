@@ -32,6 +32,12 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
         assert (tmp_path / name).is_file(), name
     table = (tmp_path / "table.md").read_text()
     assert "DS-SLAC, seed 1 | 200 |" in table and "mean ± std of 2 seeds" in table and "stochastic policy" in table
+    # Where each seed's minutes went, from its time_account.json: every activity and the rest add up to its wall time
+    assert "by activity" in table and table.count("\n| 0 | ") == 1 and table.count("\n| 1 | ") == 1
+    account = json.loads((tmp_path / "runs" / "seed0" / "time_account.json").read_text())
+    assert account["updates"] > 0 and account["acting"] > 0 and account["evaluation"] > 0 and account["checkpoints"] > 0
+    parts = sum(value for name, value in account.items() if name not in ("wall", "cpu"))
+    assert abs(parts - account["wall"]) < 0.3
     assert len((tmp_path / "seed0.csv").read_text().splitlines()) == 3  # header and evaluations at 100 and 200
 
     # A stop after the last checkpoint but before the final save: seed 1 resumes, seed 0 is reused untouched
@@ -50,7 +56,7 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
 
 
 def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None:
-    pixels = [flag if flag != "state" else "pixels" for flag in TINY]
+    pixels = [flag if flag != "state" else "pixels" for flag in TINY] + ["--env-kwargs", "max_episode_steps=25"]
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
     command = [sys.executable, "benchmarks/learning.py", *pixels, "--seeds", "3", "--out", str(tmp_path)]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300, check=False)
@@ -58,6 +64,7 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     assert "seed3, evaluation episode 10000, deterministic policy" in result.stdout
     assert (tmp_path / "beliefs.png").read_bytes()[:4] == b"\x89PNG"
     assert (tmp_path / "episode.mp4").stat().st_size > 1000
+    assert "env_kwargs:\n  max_episode_steps: 25\n" in (tmp_path / "runs" / "seed3" / "config.yaml").read_text()
     row = next(line for line in (tmp_path / "table.md").read_text().splitlines() if "seed 3" in line)
     wall, cpu = (float(cell) for cell in row.strip("|").split("|")[-2:])
     assert 0 < cpu <= 2 * wall  # one torch thread: at most the process's own core plus its render and data threads
