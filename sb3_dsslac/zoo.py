@@ -5,7 +5,8 @@ rl-zoo3's own scripts with DS-SLAC registered: ``python -m sb3_dsslac.zoo train|
 ``dsslac`` added to the zoo's algorithms and to its ``-optimize`` samplers, the Safety-Gym ids registered (so
 ``--gym-packages safety_envs`` is optional) and the zoo's evaluations measuring the episode cost: they log
 ``eval/mean_cost`` and ``eval/std_cost``, write ``costs`` into ``evaluations.npz``, keep the best model feasibility
-first, and under ``-optimize`` set the cost constraint of each trial. Needs ``pip install "sb3_dsslac[zoo]"``.
+first, and under ``-optimize`` set the cost constraint of each trial. Needs ``pip install "sb3_dsslac[zoo]"``, which also
+installs ``requests``: rl-zoo3 2.9.2's ``enjoy`` imports it (through its hub module) without declaring it.
 """
 
 import sys
@@ -95,11 +96,16 @@ def main(argv: list[str] | None = None) -> None:
     if not argv or argv[0] not in ("train", "enjoy"):
         sys.exit("usage: python -m sb3_dsslac.zoo train|enjoy [rl-zoo3 flags] (see python -m rl_zoo3.train --help)")
     register()
-    import rl_zoo3.enjoy
-    import rl_zoo3.train
-
     sys.argv = [f"{sys.argv[0]} {argv[0]}", *argv[1:]]
-    (rl_zoo3.train.train if argv[0] == "train" else rl_zoo3.enjoy.enjoy)()
+    # Only the subcommand's module: rl_zoo3.enjoy loads the zoo's Hugging Face hub code, which training never needs
+    if argv[0] == "train":
+        from rl_zoo3.train import train
+
+        train()
+    else:
+        from rl_zoo3.enjoy import enjoy
+
+        enjoy()
 
 
 if __name__ == "__main__":
