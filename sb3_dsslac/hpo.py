@@ -2,23 +2,29 @@
 Optuna search for DS-SLAC: maximise the last evaluation's mean episode reward, with the cost budget as an Optuna
 constraint (``trial.set_constraint``: mean eval cost minus budget, feasible when <= 0), multivariate TPE and
 median pruning on the intermediate evaluations. Several processes on one storage share one study; on an RDB storage
-a heartbeat marks the trial of a dead worker failed and the others retry it.
+a heartbeat marks the trial of a dead worker failed and the others retry it. Workers may start at the same moment on a
+new storage: the ones that lose the race to create its schema or the study wait a little and load what the winner made.
 """
 
 import importlib.util
+import random
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import gymnasium as gym
 import numpy as np
 import optuna
 import torch as th
 from optuna.pruners import MedianPruner
+from optuna.exceptions import DuplicatedStudyError, StorageInternalError
 from optuna.samplers import TPESampler
 from optuna.storages import JournalStorage, RDBStorage, RetryFailedTrialCallback, fail_stale_trials
 from optuna.storages.journal import JournalFileBackend
 from optuna.trial import TrialState
+from sqlalchemy.engine import make_url
+from sqlalchemy.exc import ArgumentError, IntegrityError, OperationalError, ProgrammingError
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dsslac.envs import make_env, make_eval_env
@@ -28,6 +34,74 @@ from sb3_dsslac.evaluation import CostEvalCallback
 from sb3_dsslac.presets import preset_env_kwargs, preset_hyperparams
 
 COST_CONSTRAINT = "eval_cost_over_budget"
+# What the losing side of workers creating one storage's schema or study at the same moment gets: a duplicate row or
+# table (SQLite: "UNIQUE constraint failed: alembic_version.version_num", "table studies already exists"; PostgreSQL:
+# a duplicate key or relation), a locked SQLite file, or Optuna's wrapping of them. Retried, then reported
+RACE_ERRORS: tuple[type[Exception], ...] = (
+    IntegrityError,
+    OperationalError,
+    ProgrammingError,
+    StorageInternalError,
+    DuplicatedStudyError,
+)
+StorageResult = TypeVar("StorageResult")
+
+
+class StorageError(ValueError):
+    """An Optuna storage that cannot be opened or written (bad URL, missing driver, server down), naming it."""
+
+
+def storage_name(storage: str | optuna.storages.BaseStorage | None) -> str:
+    """The storage as a user gave it, with a URL's password hidden; "in-memory storage" for None."""
+    if storage is None:
+        return "in-memory storage"
+    if isinstance(storage, RDBStorage):
+        storage = storage.url
+    if not isinstance(storage, str):
+        return type(storage).__name__
+    if storage.endswith((".log", ".journal")):
+        return f"journal file {storage}"
+    try:
+        return make_url(storage).render_as_string(hide_password=True)
+    except ArgumentError:
+        return storage
+
+
+def retry_storage_race(
+    action: Callable[[], StorageResult], storage: str | optuna.storages.BaseStorage | None, attempts: int = 10
+) -> StorageResult:
+    """
+    ``action()`` (open a storage, create or load a study, write a study attribute), repeated after a random wait of up
+    to ``0.2 * attempt`` seconds when it loses a race with another worker (``RACE_ERRORS``): the next attempt finds what
+    the winner created. After ``attempts`` tries, or at once for any other error, a ``StorageError`` names the storage.
+    """
+    for attempt in range(1, attempts + 1):
+        try:
+            return action()
+        except RACE_ERRORS as error:
+            if attempt == attempts:
+                raise StorageError(
+                    f"Optuna storage {storage_name(storage)}: still failing after {attempts} tries "
+                    f"({type(error).__name__}: {str(error).splitlines()[0]})"
+                ) from error
+            time.sleep(random.uniform(0.0, 0.2 * attempt))
+        except (ImportError, ArgumentError, OSError) as error:
+            raise StorageError(f"Cannot open the Optuna storage {storage_name(storage)}: {error}") from error
+    raise AssertionError("unreachable")
+
+
+def create_study(
+    storage: str | optuna.storages.BaseStorage | None, study_name: str | None, load_if_exists: bool = True, **kwargs: Any
+) -> optuna.Study:
+    """
+    ``optuna.create_study`` (its keywords), safe for workers that start together on a new storage: the schema and the
+    study are created by the first, and the others load them (``retry_storage_race``). The zoo bridge's ``-optimize``
+    creates its study with this too.
+    """
+    return retry_storage_race(
+        lambda: optuna.create_study(storage=storage, study_name=study_name, load_if_exists=load_if_exists, **kwargs),
+        storage,
+    )
 
 
 def sample_dsslac_params(trial: optuna.Trial, lagrange: str = "sgd") -> dict[str, Any]:
@@ -189,12 +263,16 @@ def make_storage(
     if storage is None:
         return None
     if storage.endswith((".log", ".journal")):
-        return JournalStorage(JournalFileBackend(storage))
-    return RDBStorage(
-        storage_url(storage),
-        heartbeat_interval=heartbeat_interval,
-        grace_period=grace_period,
-        heartbeat_stale_trial_callback=RetryFailedTrialCallback(max_retry=max_retry),
+        return retry_storage_race(lambda: JournalStorage(JournalFileBackend(storage)), storage)
+    # Opening a new database creates its schema: several workers starting together race for it
+    return retry_storage_race(
+        lambda: RDBStorage(
+            storage_url(storage),
+            heartbeat_interval=heartbeat_interval,
+            grace_period=grace_period,
+            heartbeat_stale_trial_callback=RetryFailedTrialCallback(max_retry=max_retry),
+        ),
+        storage,
     )
 
 
@@ -243,16 +321,15 @@ def tune(
     :param heartbeat_interval: seconds between the heartbeats of a running trial on an RDB storage
     :return: the study
     """
-    study = optuna.create_study(
-        study_name=study_name,
-        storage=make_storage(storage, heartbeat_interval=heartbeat_interval),
+    study = create_study(
+        make_storage(storage, heartbeat_interval=heartbeat_interval),
+        study_name,
         sampler=TPESampler(n_startup_trials=n_startup_trials, seed=sampler_seed, multivariate=True),
         pruner=MedianPruner(n_startup_trials=n_startup_trials, n_warmup_steps=spec.n_evaluations // 3),
         direction="maximize",
-        load_if_exists=True,
     )
-    study.set_user_attr("env", spec.env)
-    study.set_user_attr("sim_steps_per_trial", spec.sim_steps)
+    for key, value in (("env", spec.env), ("sim_steps_per_trial", spec.sim_steps)):
+        retry_storage_race(lambda key=key, value=value: study.set_user_attr(key, value), storage)
     if total_trials is not None:
         _finish_study(study, lambda trial: objective(trial, spec), total_trials, poll_seconds=heartbeat_interval)
         return study

@@ -5,11 +5,13 @@ rl-zoo3's own scripts with DS-SLAC registered: ``python -m sb3_dsslac.zoo train|
 ``dsslac`` added to the zoo's algorithms and to its ``-optimize`` samplers, the Safety-Gym ids registered (so
 ``--gym-packages safety_envs`` is optional) and the zoo's evaluations measuring the episode cost: they log
 ``eval/mean_cost`` and ``eval/std_cost``, write ``costs`` into ``evaluations.npz``, keep the best model feasibility
-first, and under ``-optimize`` set the cost constraint of each trial. Needs ``pip install "sb3_dsslac[zoo]"``, which also
-installs ``requests``: rl-zoo3 2.9.2's ``enjoy`` imports it (through its hub module) without declaring it.
+first, and under ``-optimize`` set the cost constraint of each trial; ``-optimize`` workers may start together on a new
+storage. Needs ``pip install "sb3_dsslac[zoo]"``, which also installs ``requests``: rl-zoo3 2.9.2's ``enjoy`` imports
+it (through its hub module) without declaring it.
 """
 
 import sys
+import types
 from typing import Any
 
 import gymnasium as gym
@@ -19,7 +21,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.evaluation import CostEvalCallback
-from sb3_dsslac.hpo import COST_CONSTRAINT, TrialCostEvalCallback, sample_dsslac_params
+from sb3_dsslac.hpo import COST_CONSTRAINT, TrialCostEvalCallback, create_study, sample_dsslac_params
 
 ALGO = "dsslac"
 
@@ -74,6 +76,16 @@ def convert_zoo_params(params: dict[str, Any]) -> dict[str, Any]:
     return sample_dsslac_params(optuna.trial.FixedTrial(params), lagrange="pid" if "pid_kp" in params else "sgd")
 
 
+class _RaceSafeOptuna(types.ModuleType):
+    """Optuna as ``rl_zoo3.exp_manager`` sees it: every name Optuna's, but ``create_study`` survives workers that start
+    together on a new storage (``sb3_dsslac.hpo.create_study``)."""
+
+    create_study = staticmethod(create_study)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(optuna, name)
+
+
 def register() -> None:
     """Add DS-SLAC to rl-zoo3 (algorithm, sampler, converter) and make the zoo's evaluations measure the cost."""
     import rl_zoo3.exp_manager
@@ -88,6 +100,7 @@ def register() -> None:
     rl_zoo3.hyperparams_opt.HYPERPARAMS_CONVERTER[ALGO] = convert_zoo_params
     rl_zoo3.exp_manager.EvalCallback = ZooEvalCallback
     rl_zoo3.exp_manager.TrialEvalCallback = ZooTrialEvalCallback
+    rl_zoo3.exp_manager.optuna = _RaceSafeOptuna("optuna")
 
 
 def main(argv: list[str] | None = None) -> None:

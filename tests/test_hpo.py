@@ -17,7 +17,21 @@ from optuna.storages import JournalStorage, RDBStorage, RetryFailedTrialCallback
 from optuna.trial import TrialState
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.hpo import COST_CONSTRAINT, TuneSpec, make_storage, objective, sample_dsslac_params, storage_url, tune
+from sqlalchemy.exc import IntegrityError, OperationalError
+
+from sb3_dsslac.cli import main
+from sb3_dsslac.hpo import (
+    COST_CONSTRAINT,
+    StorageError,
+    TuneSpec,
+    make_storage,
+    objective,
+    retry_storage_race,
+    sample_dsslac_params,
+    storage_name,
+    storage_url,
+    tune,
+)
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_cli import TINY_ENV, TINY_FLAGS
 from tests.test_dsslac import SMALL_POLICY
@@ -26,6 +40,9 @@ TINY = dict(
     learning_starts=20, latent_pretrain_steps=2, train_freq=10, gradient_steps=1, buffer_size=500, policy_kwargs=SMALL_POLICY
 )
 REPO = Path(__file__).resolve().parents[1]
+# The tiny trial of the start-race test (tests.test_cli's sizes, as tune --hyperparams)
+RACE_TRIAL = ["batch_size=8", "latent_batch_size=4", "sequence_length=3", "n_quantiles=8", "buffer_size=2000"]
+RACE_TRIAL += ["learning_starts=40", "train_freq=10"]
 # Set by .ci/postgres.sh, which starts a server on 127.0.0.1
 POSTGRES_URL = os.environ.get("DSSLAC_TEST_POSTGRES_URL")
 
@@ -158,3 +175,42 @@ def test_a_killed_worker_s_trial_is_retried_on_postgresql() -> None:
     assert [trial.state for trial in rest] == [TrialState.COMPLETE, TrialState.COMPLETE]
     retries = [trial for trial in rest if RetryFailedTrialCallback.retried_trial_number(trial) == killed.number]
     assert len(retries) == 1 and retries[0].params == killed.params and len(retries[0].intermediate_values) == 4
+
+
+def test_storage_races_are_retried_then_reported_by_name() -> None:
+    attempts = []
+
+    def lose_twice() -> str:
+        attempts.append(1)
+        if len(attempts) < 3:
+            raise IntegrityError("INSERT INTO alembic_version", {}, Exception("UNIQUE constraint failed"))
+        return "created"
+
+    assert retry_storage_race(lose_twice, "sqlite:///x.db") == "created" and len(attempts) == 3
+
+    def always_locked() -> None:
+        raise OperationalError("BEGIN", {}, Exception("database is locked"))
+
+    url = "postgresql://dsslac:secret@127.0.0.1:1/db"
+    with pytest.raises(StorageError, match=r"postgresql://dsslac:\*\*\*@127.0.0.1:1/db: still failing after 3 tries"):
+        retry_storage_race(always_locked, url, attempts=3)
+    assert storage_name(url) == "postgresql://dsslac:***@127.0.0.1:1/db"
+
+
+def test_a_storage_that_cannot_be_opened_ends_tune_with_its_name(tmp_path: Path, capsys) -> None:
+    storage = f"sqlite:///{tmp_path / 'missing_folder' / 'study.db'}"
+    assert main(["tune", "--env", TINY_ENV, "--timesteps=40", "--n-trials=1", "--storage", storage, *TINY_FLAGS]) == 2
+    assert f"error: Optuna storage {storage}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
+def test_workers_released_together_on_a_new_storage_all_run(kind: str) -> None:
+    """Four tune workers released by one barrier on a new storage: all exit 0 and the study holds their four trials."""
+    if kind == "postgresql" and POSTGRES_URL is None:
+        pytest.skip("no PostgreSQL server: set DSSLAC_TEST_POSTGRES_URL (.ci/postgres.sh)")
+    command = [sys.executable, "benchmarks/tune_start_race.py", "--rounds=1", "--workers=4", "--storages", kind]
+    command += ["--env", TINY_ENV, "--timesteps=60", "--hyperparams", *RACE_TRIAL]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=600, check=False)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert f"| {kind} | 0 | 0 0 0 0 | 4 |" in result.stdout
