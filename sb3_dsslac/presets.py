@@ -118,10 +118,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "latent_batch_size": 16,
         "sequence_length": 4,
         "train_freq": 80,
-        "gradient_steps": 64,
+        "gradient_steps": 48,
         "n_quantiles": 32,
         "lagrange_learning_rate": 1e-3,
-        "share_latent_batch": True,
         "compile_updates": True,
         "policy_kwargs": {
             "image_channels": (8, 16, 32, 64),
