@@ -327,8 +327,8 @@ def _learn(model: DSSLAC, config: TrainConfig, run_dir: Path, eval_seed: int, re
 
 
 def write_time_account(model: DSSLAC, run_dir: Path) -> None:
-    """``run_dir/time_account.json``: the run's wall seconds by activity, its wall and its process's CPU seconds."""
-    summary = {name: round(seconds, 1) for name, seconds in model.time_account.summary().items()}
+    """``run_dir/time_account.json``: the run's wall seconds by activity, its wall and its process's CPU seconds (ms)."""
+    summary = {name: round(seconds, 3) for name, seconds in model.time_account.summary().items()}
     (run_dir / TIME_ACCOUNT_FILE).write_text(json.dumps(summary, indent=1) + "\n")
 
 
