@@ -1,8 +1,9 @@
 """
 Named hyperparameter sets: ``thesis`` (Table 5.2), ``thesis_fast`` (the same with the fast update options),
 ``cpu`` (a pixel run end to end in a few minutes on a laptop CPU), ``cpu_learning`` (vector observations, learns
-PointGoal1 within about 30 minutes on a 2-core CPU) and ``cpu_pixels`` (64x64 pixels, about 55 CPU minutes per 300k
-simulator steps; learns the cost, not yet the reward).
+PointGoal1 within about 30 minutes on a 2-core CPU), ``cpu_pixels`` (64x64 pixels, about 128 CPU minutes per
+300k simulator steps; learns the cost, not yet the reward) and ``cpu_pixels32`` (32x32 pixels, about 70 CPU minutes;
+learns the reward on 2 of 3 seeds).
 """
 
 from typing import Any
@@ -65,10 +66,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         },
     },
     # The pixel learning benchmark's preset (benchmarks/learning.py --preset cpu_pixels --obs-type pixels): the thesis's
-    # 64x64x3 frames, conv encoder and decoder, latent filter, IQN cost critic and multiplier, sized so that 300k
-    # simulator steps take about 55 CPU minutes (one thread). In them it brings the cost under the budget (2.5 against
-    # the random policy's 38.9, 2 seeds) but does not learn the reward (-0.3, random level): its belief holds the hazards
-    # but the goal only faintly (README, "Learning from pixels on a CPU"). Departures from Table 5.2, and what each buys:
+    # 64x64x3 frames, conv encoder and decoder, latent filter, IQN cost critic and multiplier. At 0.4 updates per agent
+    # step, 300k simulator steps took 128 CPU minutes (one thread, AMD EPYC, seed 0, beside a cpu_pixels32 run): 110 of
+    # them in updates (7.5 compiled updates/s at 64x64). It kept the cost under the budget (4.9) but learned no reward
+    # (0.16 at 300k); cpu_pixels32 learns it in half the time (docs/pixel_learning.md). Departures from Table 5.2:
     # - convolution widths (8, 16, 32, 64), a quarter of the thesis's (NCHW at these widths): about 4x the updates/s of
     #   the same sizes at the thesis's widths (1.7 -> 6-7 updates/s at these batch sizes, one thread, AMD EPYC); the
     #   scene (floor, goal, hazards, vases) has few textures to encode;
@@ -77,15 +78,15 @@ PRESETS: dict[str, dict[str, Any]] = {
     # - sequences of 4 frames, latent batch 16, actor-critic batch 32: 80 frames through the decoder per update
     #   instead of 352; the thesis's sequences of 10 took 88-96 minutes and learned no more reward (0.74, 2 seeds), and
     #   their beliefs still forget all but the last 2-4 frames (benchmarks/filter_memory.py);
-    # - 7 updates every 80 agent steps instead of 1 per step: about 12k updates in 150k agent steps, what fits beside
-    #   acting (about 6 ms per agent step, render included) and 12 evaluations of 10 episodes; 12 updates took 75 CPU
-    #   minutes and left the reward at the random level too (0.16, 2 seeds), as did the multiplier held near 0 (-0.13);
+    # - 32 updates every 80 agent steps (0.4 per step) instead of 1 per step, compiled (7.5 against 6.0 updates/s
+    #   eager): 7-12 updates per 80 steps left the reward at the random level (0.16, 2 seeds);
     # - likelihood variance 0.1 instead of 0.4, and latent step size 1e-3 instead of 1e-4: at the thesis's values the
     #   reconstructions after 25k agent steps held the floor, the sky and the robot but neither the hazards nor the
     #   goal (`python -m sb3_dsslac beliefs`), so the reward and the cost had nothing to go on; after 3k latent-only
     #   updates, 1e-3 drew the hazards where 3e-4 still drew the mean floor (benchmarks/reconstruction_speed.py);
-    # - a 10k-step warm-up and 5k pre-training updates instead of 30k and 30k: about 10 of the 55 minutes;
-    # - the thesis's multiplier (init 0.02, lr 2e-4), as cpu_learning: faster ones shut the agent down there
+    # - a 10k-step warm-up and 5k pre-training updates instead of 30k and 30k (8 of the 128 minutes);
+    # - multiplier step size 1e-3 instead of 2e-4: at 2e-4 the multiplier went from 0.02 to 0.11 in 300k steps while
+    #   the cost stayed at 60-70 (cpu_pixels32 at 0.8 updates per step, issue #24)
     "cpu_pixels": {
         "image_noise": 0.1,
         "latent_learning_rate": 1e-3,
@@ -95,8 +96,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         "latent_batch_size": 16,
         "sequence_length": 4,
         "train_freq": 80,
-        "gradient_steps": 7,
+        "gradient_steps": 32,
         "n_quantiles": 32,
+        "lagrange_learning_rate": 1e-3,
+        "compile_updates": True,
         "policy_kwargs": {
             "image_channels": (8, 16, 32, 64),
             "z1_dim": 16,
@@ -108,7 +111,12 @@ PRESETS: dict[str, dict[str, Any]] = {
         },
     },
     # cpu_pixels on 32x32 frames (PRESET_ENV_KWARGS): the same code path (conv encoder and decoder, latent filter, IQN
-    # cost critic, on-policy multiplier). Being measured; see benchmarks/learning.py
+    # cost critic, on-policy multiplier). 32x32 frames make an update about 3x cheaper (21.7 against 7.5 compiled
+    # updates/s, one thread, AMD EPYC, two runs at once), which buys 48 updates every 80 agent steps (0.6 per step) in
+    # 66-72 CPU minutes per 300k simulator steps. Evaluation reward at 300k: 5.14, 0.43, 6.28 (seeds 0-2), cost 20.0,
+    # 23.7, 33.2 (README). Probes on seed 0: 1.0 update per step reached 8.9 at 150k but would take about 130 CPU
+    # minutes; one shared batch per update (share_latent_batch) was no faster inside a run (46 ms per update either
+    # way) and learned more slowly (-0.34 at 100k against 7.26), so the batches stay separate
     "cpu_pixels32": {
         "image_noise": 0.1,
         "latent_learning_rate": 1e-3,
