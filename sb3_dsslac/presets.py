@@ -13,6 +13,52 @@ from typing import Any
 # repeat 2 that is 30_000 + 400 * 1000 / 2 = 230_000 agent steps (460k simulator steps)
 THESIS_LR_DECAY_MILESTONE = 30_000 + 400 * 1000 // 2
 
+# The pixel learning benchmark's preset (benchmarks/learning.py --preset cpu_pixels --obs-type pixels): the thesis's
+# 64x64x3 frames, conv encoder and decoder, latent filter, IQN cost critic and multiplier. At 0.4 updates per agent
+# step, 300k simulator steps took 128 CPU minutes (one thread, AMD EPYC, seed 0, beside a cpu_pixels32 run): 110 of
+# them in updates (7.5 compiled updates/s at 64x64). It kept the cost under the budget (4.9) but learned no reward
+# (0.16 at 300k); cpu_pixels32 learns it in half the time (docs/pixel_learning.md). Departures from Table 5.2:
+# - convolution widths (8, 16, 32, 64), a quarter of the thesis's (NCHW at these widths): about 4x the updates/s of
+#   the same sizes at the thesis's widths (1.7 -> 6-7 updates/s at these batch sizes, one thread, AMD EPYC); the
+#   scene (floor, goal, hazards, vases) has few textures to encode;
+# - the small latent and networks of cpu_learning (z 16 + 64, feature 64, hidden 128, 32 quantiles and cosines):
+#   cheaper filter steps when acting; the update's time is the convolutions' anyway;
+# - sequences of 4 frames, latent batch 16, actor-critic batch 32: 80 frames through the decoder per update
+#   instead of 352; the thesis's sequences of 10 took 88-96 minutes and learned no more reward (0.74, 2 seeds), and
+#   their beliefs still forget all but the last 2-4 frames (benchmarks/filter_memory.py);
+# - 32 updates every 80 agent steps (0.4 per step) instead of 1 per step, compiled (7.5 against 6.0 updates/s
+#   eager): 7-12 updates per 80 steps left the reward at the random level (0.16, 2 seeds);
+# - likelihood variance 0.1 instead of 0.4, and latent step size 1e-3 instead of 1e-4: at the thesis's values the
+#   reconstructions after 25k agent steps held the floor, the sky and the robot but neither the hazards nor the
+#   goal (`python -m sb3_dsslac beliefs`), so the reward and the cost had nothing to go on; after 3k latent-only
+#   updates, 1e-3 drew the hazards where 3e-4 still drew the mean floor (benchmarks/reconstruction_speed.py);
+# - a 10k-step warm-up and 5k pre-training updates instead of 30k and 30k (8 of the 128 minutes);
+# - multiplier step size 1e-3 instead of 2e-4: at 2e-4 the multiplier went from 0.02 to 0.11 in 300k steps while
+#   the cost stayed at 60-70 (cpu_pixels32 at 0.8 updates per step, issue #24)
+CPU_PIXELS: dict[str, Any] = {
+    "image_noise": 0.1,
+    "latent_learning_rate": 1e-3,
+    "learning_starts": 10_000,
+    "latent_pretrain_steps": 5_000,
+    "batch_size": 32,
+    "latent_batch_size": 16,
+    "sequence_length": 4,
+    "train_freq": 80,
+    "gradient_steps": 32,
+    "n_quantiles": 32,
+    "lagrange_learning_rate": 1e-3,
+    "compile_updates": True,
+    "policy_kwargs": {
+        "image_channels": (8, 16, 32, 64),
+        "z1_dim": 16,
+        "z2_dim": 64,
+        "feature_dim": 64,
+        "hidden_units": [128, 128],
+        "n_cosines": 32,
+        "cost_critic_hidden_dim": 128,
+    },
+}
+
 PRESETS: dict[str, dict[str, Any]] = {
     # DSSLAC's defaults are the thesis's Table 5.2; the reference code's step-size halving on top
     "thesis": {"lr_decay_milestone": THESIS_LR_DECAY_MILESTONE},
@@ -65,51 +111,8 @@ PRESETS: dict[str, dict[str, Any]] = {
             "cost_critic_hidden_dim": 128,
         },
     },
-    # The pixel learning benchmark's preset (benchmarks/learning.py --preset cpu_pixels --obs-type pixels): the thesis's
-    # 64x64x3 frames, conv encoder and decoder, latent filter, IQN cost critic and multiplier. At 0.4 updates per agent
-    # step, 300k simulator steps took 128 CPU minutes (one thread, AMD EPYC, seed 0, beside a cpu_pixels32 run): 110 of
-    # them in updates (7.5 compiled updates/s at 64x64). It kept the cost under the budget (4.9) but learned no reward
-    # (0.16 at 300k); cpu_pixels32 learns it in half the time (docs/pixel_learning.md). Departures from Table 5.2:
-    # - convolution widths (8, 16, 32, 64), a quarter of the thesis's (NCHW at these widths): about 4x the updates/s of
-    #   the same sizes at the thesis's widths (1.7 -> 6-7 updates/s at these batch sizes, one thread, AMD EPYC); the
-    #   scene (floor, goal, hazards, vases) has few textures to encode;
-    # - the small latent and networks of cpu_learning (z 16 + 64, feature 64, hidden 128, 32 quantiles and cosines):
-    #   cheaper filter steps when acting; the update's time is the convolutions' anyway;
-    # - sequences of 4 frames, latent batch 16, actor-critic batch 32: 80 frames through the decoder per update
-    #   instead of 352; the thesis's sequences of 10 took 88-96 minutes and learned no more reward (0.74, 2 seeds), and
-    #   their beliefs still forget all but the last 2-4 frames (benchmarks/filter_memory.py);
-    # - 32 updates every 80 agent steps (0.4 per step) instead of 1 per step, compiled (7.5 against 6.0 updates/s
-    #   eager): 7-12 updates per 80 steps left the reward at the random level (0.16, 2 seeds);
-    # - likelihood variance 0.1 instead of 0.4, and latent step size 1e-3 instead of 1e-4: at the thesis's values the
-    #   reconstructions after 25k agent steps held the floor, the sky and the robot but neither the hazards nor the
-    #   goal (`python -m sb3_dsslac beliefs`), so the reward and the cost had nothing to go on; after 3k latent-only
-    #   updates, 1e-3 drew the hazards where 3e-4 still drew the mean floor (benchmarks/reconstruction_speed.py);
-    # - a 10k-step warm-up and 5k pre-training updates instead of 30k and 30k (8 of the 128 minutes);
-    # - multiplier step size 1e-3 instead of 2e-4: at 2e-4 the multiplier went from 0.02 to 0.11 in 300k steps while
-    #   the cost stayed at 60-70 (cpu_pixels32 at 0.8 updates per step, issue #24)
-    "cpu_pixels": {
-        "image_noise": 0.1,
-        "latent_learning_rate": 1e-3,
-        "learning_starts": 10_000,
-        "latent_pretrain_steps": 5_000,
-        "batch_size": 32,
-        "latent_batch_size": 16,
-        "sequence_length": 4,
-        "train_freq": 80,
-        "gradient_steps": 32,
-        "n_quantiles": 32,
-        "lagrange_learning_rate": 1e-3,
-        "compile_updates": True,
-        "policy_kwargs": {
-            "image_channels": (8, 16, 32, 64),
-            "z1_dim": 16,
-            "z2_dim": 64,
-            "feature_dim": 64,
-            "hidden_units": [128, 128],
-            "n_cosines": 32,
-            "cost_critic_hidden_dim": 128,
-        },
-    },
+    # The pixel learning benchmark's preset: CPU_PIXELS, with its measurements
+    "cpu_pixels": CPU_PIXELS,
     # cpu_pixels on 32x32 frames (PRESET_ENV_KWARGS): the same code path (conv encoder and decoder, latent filter, IQN
     # cost critic, on-policy multiplier). 32x32 frames make an update about 3x cheaper (21.7 against 7.5 compiled
     # updates/s, one thread, AMD EPYC, two runs at once), which buys 48 updates every 80 agent steps (0.6 per step) in
@@ -117,29 +120,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # 23.7, 33.2 (README). Probes on seed 0: 1.0 update per step reached 8.9 at 150k but would take about 130 CPU
     # minutes; one shared batch per update (share_latent_batch) was no faster inside a run (46 ms per update either
     # way) and learned more slowly (-0.34 at 100k against 7.26), so the batches stay separate
-    "cpu_pixels32": {
-        "image_noise": 0.1,
-        "latent_learning_rate": 1e-3,
-        "learning_starts": 10_000,
-        "latent_pretrain_steps": 5_000,
-        "batch_size": 32,
-        "latent_batch_size": 16,
-        "sequence_length": 4,
-        "train_freq": 80,
-        "gradient_steps": 48,
-        "n_quantiles": 32,
-        "lagrange_learning_rate": 1e-3,
-        "compile_updates": True,
-        "policy_kwargs": {
-            "image_channels": (8, 16, 32, 64),
-            "z1_dim": 16,
-            "z2_dim": 64,
-            "feature_dim": 64,
-            "hidden_units": [128, 128],
-            "n_cosines": 32,
-            "cost_critic_hidden_dim": 128,
-        },
-    },
+    "cpu_pixels32": {**CPU_PIXELS, "gradient_steps": 48},
 }
 
 
