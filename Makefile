@@ -24,6 +24,7 @@ train: install
 # DSSLAC_VENV lets the tests check that they run inside this environment
 test: install
 	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
 	DSSLAC_VENV="$(abspath $(VENV))" $(PY) -m pytest -q
 
 lint: install

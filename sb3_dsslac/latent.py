@@ -235,9 +235,7 @@ class LatentModel(nn.Module):
             flat = flat.view(batch * steps, self.z_dim, 1, 1)
         return self.decoder(flat).view(batch, steps, *self.observation_shape)
 
-    def posterior(
-        self, features: Tensor, actions: Tensor, noise: tuple[Tensor, Tensor] | None = None
-    ) -> LatentRollout:
+    def posterior(self, features: Tensor, actions: Tensor, noise: tuple[Tensor, Tensor] | None = None) -> LatentRollout:
         """
         Reparameterised posterior rollout: features (B, T+1, F), actions (B, T, A) -> fields (B, T+1, dim).
 
