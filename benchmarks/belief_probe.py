@@ -4,6 +4,10 @@ from the run's last replay-buffer checkpoint, each filtered by the run's latent 
 z of the window's last frame (and, for comparison, from that frame's encoder feature) to what the frame shows: whether
 the goal (green pixels) is in view, how many goal pixels there are, the goal's mean column where it is in view, and the
 same for the hazards (blue). R^2 on a held-out third of the windows: 1 is a linear readout, 0 is no better than the mean.
+It also scores the latent model's own cost decoder on the windows' last transitions: its mean probability of cost on
+the transitions that cost and on those that did not, and the ROC AUC between them (0.5: it cannot tell them apart),
+then the same on fresh episodes of the agent's stochastic policy, filtered online as it acts (``--episodes``): the
+buffer's windows are what the model trained on, the fresh episodes are held out.
 
     python benchmarks/belief_probe.py runs/<run>      # a run of `python -m sb3_dsslac train --obs-type pixels`
 
@@ -18,7 +22,8 @@ import torch as th
 from machine import cpu_model
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint
+from sb3_dsslac.beliefs import episode_beliefs
+from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint, load_config
 
 MIN_PIXELS = 10  # an object is "in view" with at least this many of its pixels
 
@@ -60,17 +65,62 @@ def frame_targets(frames: np.ndarray) -> dict[str, np.ndarray]:
     return targets
 
 
-def probe(model: DSSLAC, n_windows: int, chunk: int = 100) -> tuple[dict[str, dict[str, float | None]], dict[str, float]]:
-    """R^2 of each target from the belief and from the encoder feature, and the share of frames showing each object."""
+def roc_auc(scores: np.ndarray, positive: np.ndarray) -> float | None:
+    """
+    Probability that a random positive row scores above a random negative one (ties count half); None without both.
+
+    :param scores: (N,) predicted scores
+    :param positive: (N,) bool labels
+    """
+    n_positive, n_negative = int(positive.sum()), int((~positive).sum())
+    if n_positive == 0 or n_negative == 0:
+        return None
+    order = np.argsort(scores, kind="mergesort")
+    ranks = np.empty(len(scores))
+    ranks[order] = np.arange(1, len(scores) + 1)
+    for value in np.unique(scores[positive]):  # average ranks over ties
+        tied = scores == value
+        ranks[tied] = ranks[tied].mean()
+    return float((ranks[positive].sum() - n_positive * (n_positive + 1) / 2) / (n_positive * n_negative))
+
+
+def cost_head_scores(probabilities: np.ndarray, costs: np.ndarray) -> dict[str, float | None]:
+    """The cost decoder's mean p(cost) on costly and on free transitions, their share, and the ROC AUC between them."""
+    costly = costs > 0
+    return {
+        "costly share": float(costly.mean()),
+        "p(cost) on costly": float(probabilities[costly].mean()) if costly.any() else None,
+        "p(cost) on free": float(probabilities[~costly].mean()) if (~costly).any() else None,
+        "ROC AUC": roc_auc(probabilities, costly),
+    }
+
+
+def format_scores(scores: dict[str, float | None]) -> str:
+    """``name value`` pairs, n/a where a score is undefined."""
+    return ", ".join(f"{name} {value:.3f}" if value is not None else f"{name} n/a" for name, value in scores.items())
+
+
+def probe(
+    model: DSSLAC, n_windows: int, chunk: int = 100
+) -> tuple[dict[str, dict[str, float | None]], dict[str, float], dict[str, float | None]]:
+    """
+    R^2 of each target from the belief and from the encoder feature, the share of frames showing each object, and the
+    cost decoder's scores on the windows' last transitions.
+    """
     latent, buffer = model.policy.latent, model.replay_buffer
-    beliefs, features, frames = [], [], []
+    beliefs, features, frames, cost_probabilities, costs = [], [], [], [], []
     with th.no_grad():
         for _ in range(n_windows // chunk):
             batch = buffer.gather(buffer.sample_indices(1, chunk)[0])
             window_features = latent.encode(model.policy.preprocess(batch.observations))
-            beliefs.append(latent.latents_from_features(window_features, batch.actions)[:, -1].cpu().numpy())
+            z = latent.latents_from_features(window_features, batch.actions)
+            beliefs.append(z[:, -1].cpu().numpy())
             features.append(window_features[:, -1].cpu().numpy())
             frames.append(batch.observations[:, -1].permute(0, 2, 3, 1).cpu().numpy())
+            last_transition = th.cat([z[:, -2], batch.actions[:, -1], z[:, -1]], dim=-1)
+            cost_probabilities.append(th.sigmoid(latent.cost_decoder(last_transition)).squeeze(-1).cpu().numpy())
+            costs.append(batch.costs[:, -1].cpu().numpy())
+    cost_head = cost_head_scores(np.concatenate(cost_probabilities), np.concatenate(costs))
     inputs = {"belief z": np.concatenate(beliefs), "encoder feature": np.concatenate(features)}
     targets = frame_targets(np.concatenate(frames))
     scores: dict[str, dict[str, float | None]] = {}
@@ -81,7 +131,7 @@ def probe(model: DSSLAC, n_windows: int, chunk: int = 100) -> tuple[dict[str, di
             for input_name, x in inputs.items()
         }
     shares = {name.removesuffix(" in view"): float(v.mean()) for name, v in targets.items() if name.endswith(" in view")}
-    return scores, shares
+    return scores, shares, cost_head
 
 
 def main() -> None:
@@ -89,6 +139,8 @@ def main() -> None:
     parser.add_argument("run", type=Path, help="a train run folder (model.zip and checkpoints/)")
     parser.add_argument("--windows", type=int, default=3000, help="windows drawn from the replay buffer")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--episodes", type=int, default=5, help="fresh episodes for the held-out cost-decoder scores")
+    parser.add_argument("--episode-seed", type=int, default=10_000, help="reset seed of the first fresh episode (+1 each)")
     args = parser.parse_args()
     checkpoint = find_checkpoint(args.run)
     if checkpoint is None:
@@ -101,7 +153,7 @@ def main() -> None:
     if len(model.policy.latent.observation_shape) != 3:
         raise SystemExit(f"{args.run} is not a pixel run: its observations are {model.policy.latent.observation_shape}")
     model.load_replay_buffer(checkpoint.replay_buffer)
-    scores, shares = probe(model, args.windows)
+    scores, shares, cost_head = probe(model, args.windows)
     where = f"buffer at {checkpoint.timesteps:,} agent steps, {args.windows} windows"
     print(f"{args.run}: {model_path.name}, {where}, {cpu_model()}")
     print(", ".join(f"{name} in view in {share:.1%} of the frames" for name, share in shares.items()))
@@ -109,6 +161,16 @@ def main() -> None:
     for target_name, row in scores.items():
         cells = [f"{value:.3f}" if value is not None else "n/a" for value in row.values()]
         print(f"| {target_name} | {' | '.join(cells)} |")
+    print(f"\ncost decoder on the windows' last transitions: {format_scores(cost_head)}")
+    if args.episodes > 0:
+        config = load_config(args.run)
+        seeds = range(args.episode_seed, args.episode_seed + args.episodes)
+        kwargs = {"deterministic": False, "env_kwargs": config.env_kwargs}  # sampled, as the agent acts in training
+        episodes = [episode_beliefs(model, config.env, seed=seed, **kwargs) for seed in seeds]
+        probabilities = np.concatenate([episode.cost_probabilities for episode in episodes])
+        costs = np.concatenate([episode.costs for episode in episodes])
+        held_out = format_scores(cost_head_scores(probabilities, costs))
+        print(f"cost decoder on {args.episodes} fresh episodes ({len(costs)} steps), online filter: {held_out}")
 
 
 if __name__ == "__main__":

@@ -13,14 +13,14 @@ once the robot turns away) is forgotten, and the window/online mismatch does not
 
 import argparse
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch as th
 from machine import cpu_model
 
 from sb3_dsslac import DSSLAC
 from sb3_dsslac.envs import make_env
-from sb3_dsslac.runs import FINAL_MODEL
+from sb3_dsslac.runs import FINAL_MODEL, find_run_config
 
 
 class FilteredEpisode(NamedTuple):
@@ -31,10 +31,14 @@ class FilteredEpisode(NamedTuple):
     beliefs: th.Tensor  # (T, Z) the online filter's means along the episode (same frames and actions)
 
 
-def filtered_episode(model: DSSLAC, env_id: str, seed: int) -> FilteredEpisode:
-    """Run one episode with the agent's stochastic policy (sampled filter, as it acts while training)."""
+def filtered_episode(model: DSSLAC, env_id: str, seed: int, env_kwargs: dict[str, Any] | None = None) -> FilteredEpisode:
+    """
+    Run one episode with the agent's stochastic policy (sampled filter, as it acts while training).
+
+    :param env_kwargs: keywords of the env (a run's own, e.g. its image size)
+    """
     policy, latent = model.policy, model.policy.latent
-    env = make_env(env_id, "pixels")
+    env = make_env(env_id, "pixels", env_kwargs=env_kwargs)
     policy.set_training_mode(False)
     features, actions, beliefs = [], [], []
     sampled_z2, action = policy.initial_state(1)
@@ -89,7 +93,7 @@ def mismatch_share(model: DSSLAC, episodes: list[FilteredEpisode], frames: int) 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("model", type=Path, help="a train run folder (its model.zip) or a saved model")
-    parser.add_argument("--env", default="SafetyGym/PointGoal1-v0")
+    parser.add_argument("--env", default=None, help="the env (default: the run's own, else SafetyGym/PointGoal1-v0)")
     parser.add_argument("--episodes", type=int, default=6, help="episodes of the agent's stochastic policy")
     parser.add_argument("--seed", type=int, default=10_000, help="reset seed of the first episode (then +1 each)")
     parser.add_argument(
@@ -104,14 +108,17 @@ def main() -> None:
     model = DSSLAC.load(path, device="cpu")
     if len(model.policy.latent.observation_shape) != 3:
         raise SystemExit(f"{path} is not a pixel agent: its observations are {model.policy.latent.observation_shape}")
-    episodes = [filtered_episode(model, args.env, args.seed + index) for index in range(args.episodes)]
+    config = find_run_config(path)
+    env_id = args.env or (config.env if config is not None else "SafetyGym/PointGoal1-v0")
+    env_kwargs = config.env_kwargs if config is not None else None  # the run's own image size
+    episodes = [filtered_episode(model, env_id, args.seed + index, env_kwargs) for index in range(args.episodes)]
     frames = sum(len(episode.features) for episode in episodes)
     training_window = model.sequence_length  # transitions per replay window: z has that many frames behind it
     lengths = sorted({*args.windows, training_window})
     shortest = min(len(episode.features) for episode in episodes)
     if lengths[0] < 1 or lengths[-1] > shortest:
         raise SystemExit(f"--windows: every length must be between 1 and the shortest episode's {shortest} frames")
-    print(f"{path}: {args.episodes} episodes ({frames} frames) of its stochastic policy on {args.env}, {cpu_model()}")
+    print(f"{path}: {args.episodes} episodes ({frames} frames) of its stochastic policy on {env_id}, {cpu_model()}")
     print(f"training windows: {training_window} frames for z, {training_window + 1} for the next z\n")
     print("| window, frames | online-vs-window distance, share of the belief's variance |\n|---:|---:|")
     for length in lengths:

@@ -116,7 +116,7 @@ def main() -> None:
         seconds = time.perf_counter() - start
         done = target
         episodes = [episode_beliefs(model, args.env, seed=10_000 + index, max_steps=args.episode_steps) for index in range(3)]
-        scores, _ = probe(model, args.probe_windows)
+        scores, _, _ = probe(model, args.probe_windows)
         plot_beliefs(episodes[0], args.out / f"beliefs_{done}.png", title=f"after {done:,} latent updates")
         row = {"latent_updates": done, "updates_per_s": round(n_updates / seconds, 2)}
         row["reward_r2"] = reward_r2(model, windows)

@@ -75,6 +75,8 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     rows = {line.split("|")[1].strip(): line for line in result.stdout.splitlines() if line.startswith("| ")}
     assert {"goal in view", "goal column", "hazard pixels"} <= set(rows)
     assert "of the frames" in result.stdout
+    assert "cost decoder on the windows' last transitions: costly share" in result.stdout
+    assert "cost decoder on 5 fresh episodes (125 steps), online filter: costly share" in result.stdout
 
     command = [sys.executable, "benchmarks/filter_memory.py", str(tmp_path / "runs" / "seed3"), "--env", TINY[1]]
     command += ["--episodes", "2", "--windows", "1", "2"]
@@ -115,6 +117,22 @@ def test_belief_probe_scores_a_linear_readout_near_one_and_noise_near_zero(monke
     assert targets["goal in view"].tolist() == [1.0, 0.0] and targets["goal pixels"].tolist() == [40.0, 0.0]
     assert targets["goal column"][0] == 11.5 and np.isnan(targets["goal column"][1])
     assert targets["hazard in view"].tolist() == [0.0, 0.0]
+
+
+def test_belief_probe_cost_head_auc_ranks_costly_transitions_against_free_ones(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    from belief_probe import cost_head_scores, roc_auc
+
+    costly = np.array([False, False, True, True])
+    assert roc_auc(np.array([0.1, 0.2, 0.8, 0.9]), costly) == 1.0
+    assert roc_auc(np.array([0.9, 0.8, 0.2, 0.1]), costly) == 0.0
+    assert roc_auc(np.full(4, 0.3), costly) == 0.5  # a constant cannot tell them apart
+    assert roc_auc(np.array([0.1, 0.5, 0.5, 0.9]), costly) == 0.875  # the tie at 0.5 counts half
+    assert roc_auc(np.array([0.1, 0.2]), np.array([False, False])) is None
+
+    scores = cost_head_scores(np.array([0.1, 0.3, 0.6, 0.8]), np.array([0.0, 0.0, 2.0, 1.0]))
+    assert scores["costly share"] == 0.5 and scores["ROC AUC"] == 1.0
+    assert scores["p(cost) on costly"] == 0.7 and scores["p(cost) on free"] == 0.2
 
 
 def test_filter_memory_windows_as_long_as_the_episode_give_the_online_belief(monkeypatch) -> None:
