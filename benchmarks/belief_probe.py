@@ -117,8 +117,7 @@ def probe(
             beliefs.append(z[:, -1].cpu().numpy())
             features.append(window_features[:, -1].cpu().numpy())
             frames.append(batch.observations[:, -1].permute(0, 2, 3, 1).cpu().numpy())
-            last_transition = th.cat([z[:, -2], batch.actions[:, -1], z[:, -1]], dim=-1)
-            cost_probabilities.append(th.sigmoid(latent.cost_decoder(last_transition)).squeeze(-1).cpu().numpy())
+            cost_probabilities.append(latent.cost_probability(z[:, -2], batch.actions[:, -1], z[:, -1]).cpu().numpy())
             costs.append(batch.costs[:, -1].cpu().numpy())
     cost_head = cost_head_scores(np.concatenate(cost_probabilities), np.concatenate(costs))
     inputs = {"belief z": np.concatenate(beliefs), "encoder feature": np.concatenate(features)}

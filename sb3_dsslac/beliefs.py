@@ -76,8 +76,8 @@ def episode_beliefs(
                 start = th.zeros(1, dtype=th.bool, device=policy.device)
                 done, steps = terminated or truncated, steps + 1
             if transitions:
-                logits = policy.latent.cost_decoder(th.cat([th.cat(step, dim=-1) for step in transitions]))
-                cost_probabilities = th.sigmoid(logits).squeeze(-1).cpu().numpy()
+                z, actions, next_z = (th.cat(parts) for parts in zip(*transitions, strict=True))
+                cost_probabilities = policy.latent.cost_probability(z, actions, next_z).cpu().numpy()
             else:
                 cost_probabilities = np.zeros(0)
     finally:

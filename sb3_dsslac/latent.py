@@ -395,6 +395,10 @@ class LatentModel(nn.Module):
         self._check_sequence(observations, actions)
         return self.latents_from_features(self.encode(observations), actions)
 
+    def cost_probability(self, z: Tensor, actions: Tensor, next_z: Tensor) -> Tensor:
+        """The cost decoder's p(c > 0) of transitions z (N, z_dim), actions (N, A) -> next_z (N, z_dim), shape (N,)."""
+        return torch.sigmoid(self.cost_decoder(torch.cat([z, actions, next_z], dim=-1))).squeeze(-1)
+
     def latents_from_features(self, features: Tensor, actions: Tensor) -> Tensor:
         """Posterior samples ``z = [z1, z2]`` (B, T+1, z_dim) of encoder features (B, T+1, F) and actions (B, T, A)."""
         rollout = self.posterior(features, actions)
