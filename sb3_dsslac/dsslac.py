@@ -526,6 +526,14 @@ class DSSLAC(OffPolicyAlgorithm):
                 scaled_action = self.policy.actor(z)
         self._last_filter_state = (z2, scaled_action)
         buffer_action = scaled_action.cpu().numpy()
+        if not np.isfinite(buffer_action).all():
+            # Weights that overflowed in the last burst's final update, or finite weights whose filter overflows on a
+            # real frame: either way no later loss would be computed before the env rejects the action
+            raise RuntimeError(
+                f"DS-SLAC's action became NaN or inf at timestep {self.num_timesteps} (after update {self._n_updates}): "
+                "the latent filter or the actor overflowed, so the weights may hold NaN or huge values: go back to the "
+                "last checkpoint. Check train/kl and train/image_loss for a spike, or lower latent_learning_rate."
+            )
         return self.policy.unscale_action(buffer_action), buffer_action
 
     def collect_rollouts(self, *args: Any, **kwargs: Any) -> Any:

@@ -236,6 +236,17 @@ def test_nan_loss_stops_training_and_names_the_loss(network: str, ent_coef, loss
         model.train(gradient_steps=3, batch_size=8)
 
 
+def test_nan_action_stops_training_before_the_env_sees_it() -> None:
+    # The last update of a burst can leave the weights NaN (or huge) with every loss of that burst finite: the next
+    # action is the first place it shows, and it must fail with the checkpoint advice, not inside the env
+    model = small_model(HazardPointEnv())
+    model.learn(60)  # past learning_starts: the actor acts
+    with th.no_grad():
+        next(model.policy.actor.parameters()).fill_(float("nan"))
+    with pytest.raises(RuntimeError, match=f"action became NaN or inf at timestep 60 \\(after update {model._n_updates}\\)"):
+        model.learn(10, reset_num_timesteps=False)
+
+
 def test_nan_in_the_latent_pretraining_names_the_latent_loss() -> None:
     model = small_model(HazardPointEnv(), learning_starts=1000)
     model.learn(50)
