@@ -181,8 +181,12 @@ def seed_command(run_dir: Path, seed: int, args: argparse.Namespace) -> list[str
 
 
 def run_seeds(args: argparse.Namespace, runs_root: Path) -> None:
-    """Run every unfinished seed, ``args.parallel`` at a time; a stop (Ctrl-C, SIGTERM) ends them all."""
+    """
+    Run every unfinished seed, ``args.parallel`` at a time; a stop (Ctrl-C, SIGTERM) ends them all. A seed that fails
+    does not stop the others: the benchmark exits with an error naming it once they have ended.
+    """
     pending = [seed for seed in args.seeds if seed_state(runs_root / f"seed{seed}") != "finished"]
+    failed: dict[int, int] = {}
     for seed in sorted(set(args.seeds) - set(pending)):
         print(f"seed {seed}: finished earlier, reused")
     running: dict[int, tuple[subprocess.Popen, float, IO[str]]] = {}
@@ -206,7 +210,9 @@ def run_seeds(args: argparse.Namespace, runs_root: Path) -> None:
                 run_dir = runs_root / f"seed{seed}"
                 add_minutes(run_dir, (time.time() - started) / 60, (children_cpu_seconds() - cpu_before) / 60)
                 if process.returncode != 0:
-                    raise SystemExit(f"seed {seed} failed (exit {process.returncode}); see {runs_root / f'seed{seed}.log'}")
+                    failed[seed] = process.returncode
+                    print(f"seed {seed}: failed (exit {process.returncode}), the others go on")
+                    continue
                 wall, cpu = read_minutes(run_dir)
                 print(f"seed {seed}: finished, {wall:.1f} wall and {cpu:.1f} CPU minutes in all")
     finally:
@@ -217,6 +223,9 @@ def run_seeds(args: argparse.Namespace, runs_root: Path) -> None:
             process.wait()
             log.close()
             add_minutes(runs_root / f"seed{seed}", (time.time() - started) / 60, (children_cpu_seconds() - cpu_before) / 60)
+    if failed:
+        logs = ", ".join(f"seed {seed} (exit {code}): {runs_root / f'seed{seed}.log'}" for seed, code in failed.items())
+        raise SystemExit(f"failed: {logs}; run the benchmark again to resume them from their last checkpoints")
 
 
 def add_minutes(run_dir: Path, wall: float, cpu: float) -> None:
@@ -313,32 +322,40 @@ def plot_seeds(
     plt.close(fig)
 
 
+LATE_EVALUATIONS = 3  # the table's late level: the last evaluations of each seed, pooled
+
+
 def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndarray], runs_root: Path) -> str:
-    """Markdown: the final evaluation of each seed, their mean and std, and the random policy."""
+    """Markdown: each seed's final evaluation and its late level (the last evaluations' episodes pooled), their mean
+    and std over seeds, and the random policy."""
     lines = [
-        "| policy | sim steps | eval reward | eval cost | wall minutes | CPU minutes |",
-        "|---|---:|---:|---:|---:|---:|",
+        f"| policy | sim steps | eval reward | eval cost | reward, last {LATE_EVALUATIONS} evals "
+        f"| cost, last {LATE_EVALUATIONS} evals | wall minutes | CPU minutes |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    finals = []
+    levels = []
     for seed, run in runs.items():
-        reward, cost = run.rewards[-1].mean(), run.costs[-1].mean()
-        finals.append((reward, cost))
+        level = (run.rewards[-1].mean(), run.costs[-1].mean())
+        level += (run.rewards[-LATE_EVALUATIONS:].mean(), run.costs[-LATE_EVALUATIONS:].mean())
+        levels.append(level)
         wall, cpu = read_minutes(runs_root / f"seed{seed}")
         lines.append(
-            f"| DS-SLAC, seed {seed} | {int(run.sim_steps[-1]):,} | {reward:.2f} | {cost:.1f} | {wall:.1f} | {cpu:.1f} |"
+            f"| DS-SLAC, seed {seed} | {int(run.sim_steps[-1]):,} | {level[0]:.2f} | {level[1]:.1f} | {level[2]:.2f} "
+            f"| {level[3]:.1f} | {wall:.1f} | {cpu:.1f} |"
         )
-    rewards, costs = np.array(finals).T
+    means, stds = np.mean(levels, axis=0), np.std(levels, axis=0)
     lines.append(
-        f"| DS-SLAC, mean ± std of {len(finals)} seeds | | {rewards.mean():.2f} ± {rewards.std():.2f} "
-        f"| {costs.mean():.1f} ± {costs.std():.1f} | | |"
+        f"| DS-SLAC, mean ± std of {len(levels)} seeds | | {means[0]:.2f} ± {stds[0]:.2f} | {means[1]:.1f} ± {stds[1]:.1f} "
+        f"| {means[2]:.2f} ± {stds[2]:.2f} | {means[3]:.1f} ± {stds[3]:.1f} | | |"
     )
-    lines.append(f"| random policy ({len(random[0])} episodes) | | {random[0].mean():.2f} | {random[1].mean():.1f} | | |")
-    policy = next(iter(runs.values())).eval_policy
-    budget = next(iter(runs.values())).cost_limit
+    lines.append(f"| random policy ({len(random[0])} episodes) | | {random[0].mean():.2f} | {random[1].mean():.1f} | | | | |")
+    first = next(iter(runs.values()))
     lines.append("")
     lines.append(
-        f"Each evaluation: {runs[next(iter(runs))].rewards.shape[1]} episodes of a separate env, {policy} policy "
-        f"(`train`'s default protocol); budget {budget:g}."
+        f"Each evaluation: {first.rewards.shape[1]} episodes of a separate env, {first.eval_policy} policy "
+        f"(`train`'s default protocol); budget {first.cost_limit:g}. The last {LATE_EVALUATIONS} evaluations "
+        f"({LATE_EVALUATIONS * first.rewards.shape[1]} episodes) show each seed's level with less of one "
+        "evaluation's noise."
     )
     return "\n".join(lines)
 

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch as th
 
 REPO = Path(__file__).resolve().parents[1]
@@ -32,6 +33,13 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
         assert (tmp_path / name).is_file(), name
     table = (tmp_path / "table.md").read_text()
     assert "DS-SLAC, seed 1 | 200 |" in table and "mean ± std of 2 seeds" in table and "stochastic policy" in table
+    # The late level pools the last 3 evaluations' episodes (here both: at 100 and 200 simulator steps)
+    evaluations = np.load(tmp_path / "runs" / "seed0" / "evaluations.npz")
+    row = next(line for line in table.splitlines() if "seed 0" in line).strip("|").split("|")
+    assert [float(cell) for cell in row[2:6]] == [
+        round(float(evaluations["results"][-1].mean()), 2), round(float(evaluations["costs"][-1].mean()), 1),
+        round(float(evaluations["results"].mean()), 2), round(float(evaluations["costs"].mean()), 1),
+    ]  # fmt: skip
     # Where each seed's minutes went, from its time_account.json: every activity and the rest add up to its wall time
     assert "by activity" in table and table.count("\n| 0 | ") == 1 and table.count("\n| 1 | ") == 1
     account = json.loads((tmp_path / "runs" / "seed0" / "time_account.json").read_text())
@@ -53,6 +61,24 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
     assert (runs / "seed0" / "model.zip").stat().st_mtime_ns == finished
     assert (runs / "seed1" / "model.zip").is_file() and (runs / "seed2" / "model.zip").is_file()
     assert "mean ± std of 3 seeds" in (tmp_path / "table.md").read_text()
+
+
+def test_a_failed_seed_does_not_stop_the_others(monkeypatch, tmp_path, capsys) -> None:
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    import learning
+
+    # Seed 1 fails at once; seed 0 and seed 2 (started after the failure) still run to their end
+    def seed_command(run_dir: Path, seed: int, args) -> list[str]:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        code = f"import pathlib, sys, time; time.sleep(0.5); pathlib.Path({str(run_dir / 'done')!r}).touch()"
+        return [sys.executable, "-c", "import sys; sys.exit(3)" if seed == 1 else code]
+
+    monkeypatch.setattr(learning, "seed_command", seed_command)
+    args = learning.argparse.Namespace(seeds=[0, 1, 2], parallel=2, poll=0.1)
+    with pytest.raises(SystemExit, match=r"failed: seed 1 \(exit 3\): .*seed1.log; run the benchmark again"):
+        learning.run_seeds(args, tmp_path)
+    assert (tmp_path / "seed0" / "done").is_file() and (tmp_path / "seed2" / "done").is_file()
+    assert "seed 1: failed (exit 3), the others go on" in capsys.readouterr().out
 
 
 def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None:
@@ -133,6 +159,20 @@ def test_belief_probe_cost_head_auc_ranks_costly_transitions_against_free_ones(m
     scores = cost_head_scores(np.array([0.1, 0.3, 0.6, 0.8]), np.array([0.0, 0.0, 2.0, 1.0]))
     assert scores["costly share"] == 0.5 and scores["ROC AUC"] == 1.0
     assert scores["p(cost) on costly"] == 0.7 and scores["p(cost) on free"] == 0.2
+
+
+def test_hazard_visibility_counts_sightings_in_the_window_and_the_bottom_rows(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    from hazard_visibility import hazard_in_view, seen_within
+
+    assert seen_within(np.array([1, 0, 0, 0, 1, 0], dtype=bool), 1).tolist() == [1, 0, 0, 0, 1, 0]
+    assert seen_within(np.array([1, 0, 0, 0, 1, 0], dtype=bool), 3).tolist() == [1, 1, 1, 0, 1, 1]
+    frames = np.full((3, 32, 32, 3), 180, dtype=np.uint8)
+    frames[0, 2:4, 10:12] = (60, 60, 230)  # 4 blue pixels at the top: over 10/4096 of 1,024 pixels (2.5)
+    frames[1, 30:32, 10:12] = (60, 60, 230)  # 4 at the bottom
+    frames[2, 31, 10:12] = (60, 60, 230)  # 2: under the threshold
+    assert hazard_in_view(frames).tolist() == [True, True, False]
+    assert hazard_in_view(frames, rows=0.25).tolist() == [False, True, False]
 
 
 def test_filter_memory_windows_as_long_as_the_episode_give_the_online_belief(monkeypatch) -> None:
