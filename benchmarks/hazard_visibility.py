@@ -16,15 +16,14 @@ The latent filter's belief holds about the last 4 frames (``filter_memory.py``),
 
 import argparse
 
+import gymnasium as gym
 import numpy as np
-from belief_probe import object_masks
+from belief_probe import MIN_PIXELS, object_masks
 from machine import cpu_model
 
 from sb3_dsslac.envs import make_env
 
-MIN_SHARE = 10 / 64**2  # belief_probe's 10 pixels of a 64x64 frame: the same area at every size
-
-
+MIN_SHARE = MIN_PIXELS / 64**2  # belief_probe's threshold on a 64x64 frame: the same area at every size
 REGIONS = {"anywhere": 1.0, "bottom quarter": 0.25}  # share of the frame's rows, counted from the bottom
 
 
@@ -45,27 +44,24 @@ def seen_within(in_view: np.ndarray, window: int) -> np.ndarray:
     return counts[1:] - counts[starts] > 0
 
 
-def random_episode(env_id: str, size: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def random_episode(env: gym.Env, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
-    One episode of uniform random actions (drawn from ``seed``, so equal at every size).
+    One episode of uniform random actions from ``env.reset(seed=seed)`` (actions drawn from ``seed``, so equal at every
+    image size).
 
-    :return: (T, size, size, 3) frames seen before each action, (T,) hazard costs and (T,) total costs of the actions
+    :return: (T, H, W, 3) frames seen before each action, (T,) hazard costs and (T,) total costs of the actions
     """
-    env = make_env(env_id, "pixels", env_kwargs={"width": size, "height": size})
     rng = np.random.default_rng(seed)
     frames, hazard_costs, costs = [], [], []
-    try:
-        observation, _ = env.reset(seed=seed)
-        done = False
-        while not done:
-            frames.append(observation)
-            action = rng.uniform(env.action_space.low, env.action_space.high).astype(env.action_space.dtype)
-            observation, _, terminated, truncated, info = env.step(action)
-            hazard_costs.append(float(info.get("cost_hazards", 0.0)))
-            costs.append(float(info["cost"]))
-            done = terminated or truncated
-    finally:
-        env.close()
+    observation, _ = env.reset(seed=seed)
+    done = False
+    while not done:
+        frames.append(observation)
+        action = rng.uniform(env.action_space.low, env.action_space.high).astype(env.action_space.dtype)
+        observation, _, terminated, truncated, info = env.step(action)
+        hazard_costs.append(float(info.get("cost_hazards", 0.0)))
+        costs.append(float(info["cost"]))
+        done = terminated or truncated
     return np.stack(frames), np.array(hazard_costs), np.array(costs)
 
 
@@ -79,16 +75,20 @@ def visibility_table(env_id: str, sizes: list[int], windows: list[int], episodes
     for size in sizes:
         seen: dict[tuple[int, str], tuple[list, list]] = {(w, region): ([], []) for w in windows for region in REGIONS}
         n_costly = n_steps = 0
-        for seed in range(episodes):
-            frames, hazard_costs, costs = random_episode(env_id, size, seed)
-            costly, free = hazard_costs > 0, costs == 0
-            n_costly, n_steps = n_costly + int(costly.sum()), n_steps + len(costs)
-            for region, rows in REGIONS.items():
-                in_view = hazard_in_view(frames, rows)
-                for window in windows:
-                    flags = seen_within(in_view, window)
-                    seen[window, region][0].append(flags[costly])
-                    seen[window, region][1].append(flags[free])
+        env = make_env(env_id, "pixels", env_kwargs={"width": size, "height": size})
+        try:
+            for seed in range(episodes):
+                frames, hazard_costs, costs = random_episode(env, seed)
+                costly, free = hazard_costs > 0, costs == 0
+                n_costly, n_steps = n_costly + int(costly.sum()), n_steps + len(costs)
+                for region, rows in REGIONS.items():
+                    in_view = hazard_in_view(frames, rows)
+                    for window in windows:
+                        flags = seen_within(in_view, window)
+                        seen[window, region][0].append(flags[costly])
+                        seen[window, region][1].append(flags[free])
+        finally:
+            env.close()
         for window in windows:
             cells = [np.concatenate(parts).mean() for region in REGIONS for parts in seen[window, region]]
             lines.append(f"| {size}x{size} | {window} | " + " | ".join(f"{cell:.2f}" for cell in cells) + " |")

@@ -326,8 +326,10 @@ LATE_EVALUATIONS = 3  # the table's late level: the last evaluations of each see
 
 
 def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndarray], runs_root: Path) -> str:
-    """Markdown: each seed's final evaluation and its late level (the last evaluations' episodes pooled), their mean
-    and std over seeds, and the random policy."""
+    """
+    Markdown: each seed's final evaluation and its late level (the last evaluations' episodes pooled), their mean and
+    std over seeds, and the random policy.
+    """
     lines = [
         f"| policy | sim steps | eval reward | eval cost | reward, last {LATE_EVALUATIONS} evals "
         f"| cost, last {LATE_EVALUATIONS} evals | wall minutes | CPU minutes |",
