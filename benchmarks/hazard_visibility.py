@@ -10,6 +10,7 @@ steps) and a false-alarm rate (free steps).
 
     python benchmarks/hazard_visibility.py                       # PointGoal1, 32x32 and 64x64, 20 episodes
     python benchmarks/hazard_visibility.py --sizes 32 48 64 --windows 1 4 10 20 --episodes 40
+    python benchmarks/hazard_visibility.py --sizes 32 --action-repeat 4       # 4 frames then span 16 simulator steps
 
 The latent filter's belief holds about the last 4 frames (``filter_memory.py``), the thesis's training window is 8+1.
 """
@@ -65,17 +66,17 @@ def random_episode(env: gym.Env, seed: int) -> tuple[np.ndarray, np.ndarray, np.
     return np.stack(frames), np.array(hazard_costs), np.array(costs)
 
 
-def visibility_table(env_id: str, sizes: list[int], windows: list[int], episodes: int) -> str:
+def visibility_table(env_id: str, sizes: list[int], windows: list[int], episodes: int, action_repeat: int = 2) -> str:
     """
-    Markdown: per size, window and region of the frame, the shares of hazard-costly and of cost-free steps with a
-    hazard seen in the window.
+    Markdown: per size, window and region of the frame, the shares of hazard-costly and of cost-free agent steps with a
+    hazard seen in the window (``action_repeat`` simulator steps per agent step and per frame).
     """
     header = " | ".join(f"{kind} steps, seen {region}" for region in REGIONS for kind in ("hazard-costly", "cost-free"))
     lines = [f"| frame size | window (frames) | {header} |", "|---|---:|" + "---:|" * 2 * len(REGIONS)]
     for size in sizes:
         seen: dict[tuple[int, str], tuple[list, list]] = {(w, region): ([], []) for w in windows for region in REGIONS}
         n_costly = n_steps = 0
-        env = make_env(env_id, "pixels", env_kwargs={"width": size, "height": size})
+        env = make_env(env_id, "pixels", env_kwargs={"width": size, "height": size, "action_repeat": action_repeat})
         try:
             for seed in range(episodes):
                 frames, hazard_costs, costs = random_episode(env, seed)
@@ -102,11 +103,12 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[32, 64], help="frame widths and heights in pixels")
     parser.add_argument("--windows", type=int, nargs="+", default=[1, 4, 10, 20], help="frames looked back, this one included")
     parser.add_argument("--episodes", type=int, default=20, help="random-policy episodes per size (env seeds 0, 1, ...)")
+    parser.add_argument("--action-repeat", type=int, default=2, help="simulator steps per agent step (and per frame)")
     args = parser.parse_args()
-    if min(args.windows) < 1 or min(args.sizes) < 1 or args.episodes < 1:
-        parser.error("--sizes, --windows and --episodes must be positive")
-    print(f"{args.env}, random policy, {args.episodes} episodes per size; {cpu_model()}\n")
-    print(visibility_table(args.env, args.sizes, args.windows, args.episodes))
+    if min(args.windows) < 1 or min(args.sizes) < 1 or args.episodes < 1 or args.action_repeat < 1:
+        parser.error("--sizes, --windows, --episodes and --action-repeat must be positive")
+    print(f"{args.env}, action repeat {args.action_repeat}, random policy, {args.episodes} episodes per size; {cpu_model()}\n")
+    print(visibility_table(args.env, args.sizes, args.windows, args.episodes, args.action_repeat))
 
 
 if __name__ == "__main__":

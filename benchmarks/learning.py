@@ -332,7 +332,7 @@ def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndar
     """
     lines = [
         f"| policy | sim steps | eval reward | eval cost | reward, last {LATE_EVALUATIONS} evals "
-        f"| cost, last {LATE_EVALUATIONS} evals | wall minutes | CPU minutes |",
+        f"| cost, last {LATE_EVALUATIONS} evals | wall minutes, all processes | CPU minutes, all processes |",
         "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     levels = []
@@ -357,7 +357,8 @@ def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndar
         f"Each evaluation: {first.rewards.shape[1]} episodes of a separate env, {first.eval_policy} policy "
         f"(`train`'s default protocol); budget {first.cost_limit:g}. The last {LATE_EVALUATIONS} evaluations "
         f"({LATE_EVALUATIONS * first.rewards.shape[1]} episodes) show each seed's level with less of one "
-        "evaluation's noise."
+        "evaluation's noise. The minutes add up every process of a seed: a run resumed after a stop redoes, and counts "
+        "twice, the steps since its last checkpoint; the time account below counts each step once."
     )
     return "\n".join(lines)
 
