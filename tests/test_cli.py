@@ -303,10 +303,11 @@ def test_pixels_safety_gym_run(tmp_path: Path, capsys) -> None:
 
 
 def test_presets_carry_their_env_keywords() -> None:
-    assert TrainConfig(env=TINY_ENV, preset="cpu_pixels32").env_kwargs == {"width": 32, "height": 32}
+    assert TrainConfig(env=TINY_ENV, preset="cpu_pixels32").env_kwargs == {"width": 32, "height": 32, "action_repeat": 4}
     assert TrainConfig(env=TINY_ENV, preset="cpu_pixels32", env_kwargs={"width": 64, "height": 64}).env_kwargs == {
         "width": 64,
         "height": 64,
+        "action_repeat": 4,
     }
     assert TrainConfig(env=TINY_ENV, preset="cpu_pixels").env_kwargs == {}
     with pytest.raises(ValueError, match="env_kwargs must be a mapping"):
@@ -316,4 +317,4 @@ def test_presets_carry_their_env_keywords() -> None:
 def test_train_help_names_the_presets_env_keywords(capsys) -> None:
     with pytest.raises(SystemExit):
         main(["train", "--help"])
-    assert "cpu_pixels32 sets width=32 height=32" in " ".join(capsys.readouterr().out.split())
+    assert "cpu_pixels32 sets width=32 height=32 action_repeat=4" in " ".join(capsys.readouterr().out.split())
