@@ -31,6 +31,7 @@ HYPERPARAM_FLAGS: dict[str, type] = {
     "gamma": float,
     "cost_gamma": float,
     "cost_limit": float,
+    "cost_target": float,
     "lagrange_init": float,
     "lagrange_learning_rate": float,
     "n_quantiles": int,

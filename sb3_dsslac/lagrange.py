@@ -100,9 +100,9 @@ class LagrangeCallback(BaseCallback):
     Only once the random warm-up is over (as in the reference), following ``model.lagrange``:
 
     - ``"sgd"`` (default, the thesis rule): after every agent step, each env's ``info["cost"]`` moves the multiplier
-      up when it exceeds the per-step budget (``cost_limit / episode_length``) and down otherwise;
-    - ``"episode"``: the same SGD rule once per finished episode, from its total cost against ``cost_limit``;
-    - ``"pid"``: a PID Lagrangian on each finished episode's cost against ``cost_limit`` (smoothed by
+      up when it exceeds the per-step budget (``episode_cost_target / episode_length``) and down otherwise;
+    - ``"episode"``: the same SGD rule once per finished episode, from its total cost against ``episode_cost_target``;
+    - ``"pid"``: a PID Lagrangian on each finished episode's cost against ``episode_cost_target`` (smoothed by
       ``model.pid_cost_ema``);
     - ``"critic"``: nothing here; ``DSSLAC.train`` drives the multiplier from the cost critic against
       ``model.critic_cost_budget``.
@@ -125,11 +125,11 @@ class LagrangeCallback(BaseCallback):
                 raw = sgd_lagrange_step(raw, float(cost), model.cost_budget_per_step, model.current_lagrange_learning_rate)
         elif model.lagrange == "episode":
             for cost in finished:
-                raw = sgd_lagrange_step(raw, cost, model.cost_limit, model.current_lagrange_learning_rate)
+                raw = sgd_lagrange_step(raw, cost, model.episode_cost_target, model.current_lagrange_learning_rate)
         else:
             for cost in finished:
                 multiplier, model.pid_state = pid_lagrange_step(
-                    model.pid_state, cost, model.cost_limit, *model.pid_gains, model.pid_cost_ema
+                    model.pid_state, cost, model.episode_cost_target, *model.pid_gains, model.pid_cost_ema
                 )
                 raw = inverse_softplus(max(multiplier, MIN_MULTIPLIER))
         if not np.isfinite(raw):

@@ -134,6 +134,22 @@ def test_lagrange_callback_raises_multiplier_over_budget_and_lowers_it_under() -
     assert model.lagrange_multiplier < start
 
 
+def test_cost_target_below_the_limit_moves_the_multiplier_and_leaves_the_limit_to_the_evaluations() -> None:
+    always_unsafe = HazardPointEnv()
+    always_unsafe.hazard_radius = 10.0  # 30 per 30-step episode: under a limit of 40, over a target of 10
+    settings = {"lagrange_learning_rate": 1e-2, "learning_starts": 20, "gradient_steps": 1}
+    free = small_model(always_unsafe, cost_limit=40.0, **settings)
+    start = free.lagrange_multiplier
+    free.learn(60)
+    assert free.lagrange_multiplier < start
+    held = small_model(always_unsafe, cost_limit=40.0, cost_target=10.0, **settings)
+    held.learn(60)
+    assert held.lagrange_multiplier > start
+    assert held.cost_limit == 40.0 and held.cost_budget_per_step == pytest.approx(10.0 / 30)
+    with pytest.raises(ValueError, match="cost_target"):
+        small_model(HazardPointEnv(), cost_limit=25.0, cost_target=30.0)
+
+
 def test_learn_attaches_exactly_one_lagrange_callback() -> None:
     model = small_model(HazardPointEnv())
     callback = model._init_callback(None)
