@@ -66,7 +66,7 @@ def random_episode(env: gym.Env, seed: int) -> tuple[np.ndarray, np.ndarray, np.
     return np.stack(frames), np.array(hazard_costs), np.array(costs)
 
 
-def visibility_table(env_id: str, sizes: list[int], windows: list[int], episodes: int, action_repeat: int = 2) -> str:
+def visibility_table(env_id: str, sizes: list[int], windows: list[int], episodes: int, action_repeat: int) -> str:
     """
     Markdown: per size, window and region of the frame, the shares of hazard-costly and of cost-free agent steps with a
     hazard seen in the window (``action_repeat`` simulator steps per agent step and per frame).

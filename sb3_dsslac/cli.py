@@ -55,8 +55,8 @@ def _add_model_flags(parser: argparse.ArgumentParser, threads_help: str) -> None
         default="thesis",
         help="thesis: Table 5.2; thesis_fast: the same with share_latent_batch and bf16; cpu: small and quick; "
         "cpu_learning: the CPU learning benchmark's (state); cpu_pixels: the pixel learning benchmark's (64x64); "
-        "cpu_pixels32: the same on 32x32 frames at action repeat 4. Env keywords of the presets (--env-kwargs replaces them): "
-        + (preset_envs or "none"),
+        "cpu_pixels32: the same on 32x32 frames at action repeat 4, the multiplier aiming at cost 20. "
+        "Env keywords of the presets (--env-kwargs replaces them): " + (preset_envs or "none"),
     )
     parser.add_argument("--obs-type", choices=["pixels", "state"], help="observation type (default: the env's)")
     parser.add_argument(
