@@ -34,8 +34,8 @@ args = json.loads(sys.argv[1])
 th.set_num_threads(args["threads"])
 import safety_envs  # noqa: F401
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.presets import preset_hyperparams
-env = gym.make(args["env"], obs_type=args["obs_type"])
+from sb3_dsslac.presets import preset_env_kwargs, preset_hyperparams
+env = gym.make(args["env"], obs_type=args["obs_type"], **preset_env_kwargs(args["preset"], args["env_kwargs"]))
 hyperparams = preset_hyperparams(args["preset"], args["keywords"])
 fill = args["fill"]
 # One rollout of fill + 1 agent steps (a rollout runs its train_freq steps whatever learn's total), then one update
@@ -73,6 +73,9 @@ def main() -> None:
     parser.add_argument("--env", default="SafetyGym/PointGoal1-v0")
     parser.add_argument("--obs-type", default="state", choices=["state", "pixels"])
     parser.add_argument("--preset", default="cpu_learning")
+    parser.add_argument(
+        "--env-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="env keywords over the preset's (width=64 height=64)"
+    )
     parser.add_argument("--keywords", nargs="*", default=[], metavar="KEY=VALUE", help="DSSLAC keywords for every tree")
     parser.add_argument("--tree-keywords", nargs="*", default=[], metavar="I:KEY=VALUE", help="keywords for tree I only")
     parser.add_argument("--updates", type=int, default=100, help="timed updates per round")
@@ -96,6 +99,7 @@ def main() -> None:
                 "obs_type": args.obs_type,
                 "preset": args.preset,
                 "keywords": per_tree[index],
+                "env_kwargs": parse_hyperparams(args.env_kwargs),
                 "updates": args.updates,
                 "warmup": args.warmup,
                 "fill": args.fill,
@@ -106,7 +110,8 @@ def main() -> None:
 
     cpu = cpu_model()
     print(
-        f"\n{args.preset} preset, {args.obs_type} observations of {args.env}; {cpu}, {args.threads} torch thread(s); "
+        f"\n{args.preset} preset, {args.obs_type} observations of {args.env} {args.env_kwargs or ''}; {cpu}, "
+        f"{args.threads} torch thread(s); "
         f"median of {args.rounds} rounds of {args.updates} updates, trees in turn\n"
     )
     print("| tree | keywords | updates/s | vs tree 0 |\n|---|---|---:|---:|")

@@ -11,8 +11,8 @@ bias, feature and action is one matrix product (or sum) over all steps. Same mat
 for in kernel launches when the update is eager.
 
 The layout of both MLPs is ``GaussianMLP``'s: linear layers with ELU between them; the last one's output is
-``[mean, raw]`` and ``std = softplus(raw) + 1e-5``. z1's posterior takes ``[feature, z2_prev, action]``, z2's
-transition ``[z1, z2_prev, action]``, in that column order.
+``[mean, raw]`` and ``std = softplus(raw) + min_std`` (the module's ``min_std``). z1's posterior takes
+``[feature, z2_prev, action]``, z2's transition ``[z1, z2_prev, action]``, in that column order.
 """
 
 from typing import Any
@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-STD_EPS = 1e-5  # GaussianMLP's floor on the standard deviation
+STD_EPS = 1e-5  # GaussianMLP's default floor on the standard deviation (the reference code's)
 _SOFTPLUS_THRESHOLD = 20.0  # torch.nn.functional.softplus's default
 
 
@@ -46,11 +46,11 @@ def _layer_pairs(params: list[Tensor]) -> list[tuple[Tensor, Tensor]]:
 
 
 def _mlp_forward(
-    hidden: Tensor, layers: list[tuple[Tensor, Tensor]], kept: list[list[Tensor]], out_dim: int
+    hidden: Tensor, layers: list[tuple[Tensor, Tensor]], kept: list[list[Tensor]], out_dim: int, min_std: float
 ) -> tuple[Tensor, Tensor, Tensor]:
     """
     One step's forward pass through an MLP from its first layer's pre-activation (B, H), noting each hidden output in
-    ``kept``: the mean, the raw std and ``std = softplus(raw) + 1e-5``, each (B, out_dim).
+    ``kept``: the mean, the raw std and ``std = softplus(raw) + min_std``, each (B, out_dim).
 
     :param layers: the transposed weight (in, out) and the bias of each layer after the first
     """
@@ -59,7 +59,7 @@ def _mlp_forward(
         kept[layer].append(hidden)
         hidden = torch.addmm(bias, hidden, weight_t)
     mean, raw = hidden.split(out_dim, dim=1)
-    return mean, raw, F.softplus(raw) + STD_EPS
+    return mean, raw, F.softplus(raw) + min_std
 
 
 def _rollout(
@@ -70,11 +70,13 @@ def _rollout(
     z2_noise: Tensor,
     posterior_params: list[Tensor],
     transition_params: list[Tensor],
+    min_stds: tuple[float, float],
     keep: bool,
 ) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
     """
     The forward pass of ``posterior_steps`` (see there for the arguments).
 
+    :param min_stds: the floors on z1's posterior std and on z2's transition std
     :param keep: also return what the backward pass needs
     :return: the outputs ``(z1_mean, z1_std, z1, z2)``, each (B, T+1, dim), and, with ``keep``, in time-major rows
         (T * B, dim): the features, the actions, z2's transition's inputs ``[z1, z2_prev]``, then per MLP its hidden
@@ -105,11 +107,11 @@ def _rollout(
         posterior_inputs.split(batch), transition_inputs.split(batch), z1_noise.unbind(0), z2_noise.unbind(0), strict=True
     ):
         pre_activation = torch.addmm(posterior_in, z2, posterior_recurrent)
-        z1_mean, raw, z1_std = _mlp_forward(pre_activation, posterior_layers, posterior_hidden, z1_dim)
+        z1_mean, raw, z1_std = _mlp_forward(pre_activation, posterior_layers, posterior_hidden, z1_dim, min_stds[0])
         z1 = torch.addcmul(z1_mean, z1_std, z1_eps)
         pair = torch.cat([z1, z2], dim=1)
         pre_activation = torch.addmm(transition_in_action, pair, transition_recurrent)
-        z2_mean, raw2, z2_std = _mlp_forward(pre_activation, transition_layers, transition_hidden, z2_dim)
+        z2_mean, raw2, z2_std = _mlp_forward(pre_activation, transition_layers, transition_hidden, z2_dim, min_stds[1])
         z2 = torch.addcmul(z2_mean, z2_std, z2_eps)
 
         for output, value in zip(outputs, (z1_mean, z1_std, z1, z2), strict=True):
@@ -151,10 +153,11 @@ class _PosteriorSteps(torch.autograd.Function):
     """``posterior_steps`` with the hand-written backward pass through time (module docstring)."""
 
     @staticmethod
-    def forward(ctx: Any, features, actions, z1_mean, z1_std, z1, z2, z1_noise, z2_noise, n_posterior: int, *params):  # type: ignore[override]
+    def forward(ctx: Any, features, actions, z1_mean, z1_std, z1, z2, z1_noise, z2_noise, n_posterior: int, min_stds, *params):  # type: ignore[override]
         first = (z1_mean, z1_std, z1, z2)
+        posterior_params, transition_params = list(params[:n_posterior]), list(params[n_posterior:])
         outputs, kept = _rollout(
-            features, actions, first, z1_noise, z2_noise, list(params[:n_posterior]), list(params[n_posterior:]), keep=True
+            features, actions, first, z1_noise, z2_noise, posterior_params, transition_params, min_stds, keep=True
         )
         ctx.layer_counts = (n_posterior // 2, (len(params) - n_posterior) // 2)
         ctx.dims = (features.shape[0], features.shape[1], z1_noise.shape[-1], z2.shape[-1])
@@ -229,7 +232,7 @@ class _PosteriorSteps(torch.autograd.Function):
         if ctx.needs_input_grad[1]:
             grad_actions = per_sequence(first_grads[0].mm(posterior_action).addmm_(first_grads[1], transition_action))
         first_inputs = (grads_z1_mean[0], grads_z1_std[0], grads_z1[0], grad_z2_now)
-        return grad_features, grad_actions, *first_inputs, None, None, None, *param_grads
+        return grad_features, grad_actions, *first_inputs, None, None, None, None, *param_grads
 
 
 def posterior_steps(
@@ -251,14 +254,17 @@ def posterior_steps(
     :param first: frame 0's z1 posterior mean and std, z1 and z2: (B, Z1) three times, (B, Z2)
     :param z1_noise: (T, B, Z1) standard normal noise of the z1 samples of frames 1..T
     :param z2_noise: (T, B, Z2) standard normal noise of the z2 samples of frames 1..T
-    :param z1_posterior: the ``GaussianMLP`` of z1's posterior
+    :param z1_posterior: the ``GaussianMLP`` of z1's posterior (its ``min_std`` floors the std)
     :param z2_transition: the ``GaussianMLP`` of z2's transition
     :return: z1's posterior mean and std, z1 and z2 of frames 0..T, each (B, T+1, dim)
     """
     posterior_params = [param for layer in linear_layers(z1_posterior) for param in (layer.weight, layer.bias)]
     transition_params = [param for layer in linear_layers(z2_transition) for param in (layer.weight, layer.bias)]
+    min_stds = (float(z1_posterior.min_std), float(z2_transition.min_std))
     if not torch.is_grad_enabled():
-        return _rollout(features, actions, first, z1_noise, z2_noise, posterior_params, transition_params, keep=False)[0]
+        return _rollout(
+            features, actions, first, z1_noise, z2_noise, posterior_params, transition_params, min_stds, keep=False
+        )[0]
     return _PosteriorSteps.apply(
-        features, actions, *first, z1_noise, z2_noise, len(posterior_params), *posterior_params, *transition_params
+        features, actions, *first, z1_noise, z2_noise, len(posterior_params), min_stds, *posterior_params, *transition_params
     )

@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from sb3_dsslac.convolutions import DenseConv2d, DenseConvTranspose2d, SubpixelConvTranspose2d
 from sb3_dsslac.fused_rollout import STD_EPS, posterior_steps
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
@@ -71,10 +72,17 @@ def fixed_std_gaussian_nll(x: Tensor, mean: Tensor, std: float) -> Tensor:
 
 
 class GaussianMLP(nn.Module):
-    """Diagonal Gaussian whose mean and std are an ELU MLP of the concatenated inputs; ``std = softplus(raw) + 1e-5``."""
+    """
+    Diagonal Gaussian whose mean and std are an ELU MLP of the concatenated inputs; ``std = softplus(raw) + min_std``.
 
-    def __init__(self, input_dim: int, output_dim: int, hidden_units: tuple[int, ...]) -> None:
+    :param min_std: the floor on the std (1e-5 in the reference code)
+    """
+
+    def __init__(self, input_dim: int, output_dim: int, hidden_units: tuple[int, ...], min_std: float = STD_EPS) -> None:
         super().__init__()
+        if not min_std > 0.0:
+            raise ValueError(f"min_std must be > 0, got {min_std}")
+        self.min_std = min_std
         self.net = build_mlp(input_dim, 2 * output_dim, hidden_units, nn.ELU)
 
     def forward(self, *inputs: Tensor) -> tuple[Tensor, Tensor]:
@@ -85,7 +93,7 @@ class GaussianMLP(nn.Module):
         else:
             out = self.net(x)
         mean, raw_std = out.chunk(2, dim=-1)
-        return mean, F.softplus(raw_std) + STD_EPS
+        return mean, F.softplus(raw_std) + self.min_std
 
 
 class LatentRollout(NamedTuple):
@@ -112,7 +120,7 @@ def _image_encoder(channels: int, size: int, feature_dim: int, widths: tuple[int
     for out_ch, kernel, pad in specs:
         layers += [nn.Conv2d(in_ch, out_ch, kernel, stride=2, padding=pad), nn.ELU()]
         in_ch = out_ch
-    layers += [nn.Conv2d(in_ch, feature_dim, 4, stride=1, padding=0), nn.ELU()]
+    layers += [DenseConv2d(in_ch, feature_dim, 4, stride=1, padding=0), nn.ELU()]
     return nn.Sequential(*layers)
 
 
@@ -122,10 +130,11 @@ def _image_decoder(z_dim: int, channels: int, size: int, widths: tuple[int, ...]
     encoder's ``widths`` in reverse; 32x32 images drop the first stride-2 layer.
     """
     mirrored = tuple(reversed(widths[: 4 if size == 64 else 3]))
-    layers: list[nn.Module] = [nn.ConvTranspose2d(z_dim, mirrored[0], 4, stride=1, padding=0), nn.LeakyReLU(0.2)]
+    layers: list[nn.Module] = [DenseConvTranspose2d(z_dim, mirrored[0], 4, stride=1, padding=0), nn.LeakyReLU(0.2)]
     for in_ch, out_ch in itertools.pairwise(mirrored):
         layers += [nn.ConvTranspose2d(in_ch, out_ch, 3, stride=2, padding=1, output_padding=1), nn.LeakyReLU(0.2)]
-    layers += [nn.ConvTranspose2d(mirrored[-1], channels, 5, stride=2, padding=2, output_padding=1), nn.LeakyReLU(0.2)]
+    output = SubpixelConvTranspose2d(mirrored[-1], channels, 5, stride=2, padding=2, output_padding=1)
+    layers += [output, nn.LeakyReLU(0.2)]
     return nn.Sequential(*layers)
 
 
@@ -148,6 +157,8 @@ class LatentModel(nn.Module):
     :param cost_positive_weight: extra weight of the positive (cost > 0) samples in the cost loss
     :param image_channels: output channels of the encoder's four stride-2 convolutions, mirrored by the decoder (images
         only; 32x32 images use the first three)
+    :param min_std: the floor on the std of the latent Gaussians (z1's prior and posterior, z2's): 1e-5 in the reference
+        code, where a prior std at the floor lets one latent excursion make a KL of 1e10 or more
     """
 
     def __init__(
@@ -163,6 +174,7 @@ class LatentModel(nn.Module):
         cost_loss_weight: float = 30.0,
         cost_positive_weight: float = 100.0,
         image_channels: tuple[int, ...] = THESIS_IMAGE_CHANNELS,
+        min_std: float = STD_EPS,
     ) -> None:
         super().__init__()
         self.image_channels = tuple(int(width) for width in image_channels)
@@ -199,15 +211,15 @@ class LatentModel(nn.Module):
             raise ValueError(f"observation_shape must be (C, H, W) or (D,), got {self.observation_shape}")
 
         # p(z2_0 | z1_0) = q(z2_0 | z1_0)
-        self.z2_init = GaussianMLP(z1_dim, z2_dim, hidden_units)
+        self.z2_init = GaussianMLP(z1_dim, z2_dim, hidden_units, min_std)
         # p(z1_{t+1} | z2_t, a_t)
-        self.z1_prior = GaussianMLP(z2_dim + action_dim, z1_dim, hidden_units)
+        self.z1_prior = GaussianMLP(z2_dim + action_dim, z1_dim, hidden_units, min_std)
         # p(z2_{t+1} | z1_{t+1}, z2_t, a_t) = q(z2_{t+1} | ...)
-        self.z2_transition = GaussianMLP(z1_dim + z2_dim + action_dim, z2_dim, hidden_units)
+        self.z2_transition = GaussianMLP(z1_dim + z2_dim + action_dim, z2_dim, hidden_units, min_std)
         # q(z1_0 | f_0)
-        self.z1_posterior_init = GaussianMLP(feature_dim, z1_dim, hidden_units)
+        self.z1_posterior_init = GaussianMLP(feature_dim, z1_dim, hidden_units, min_std)
         # q(z1_{t+1} | f_{t+1}, z2_t, a_t)
-        self.z1_posterior = GaussianMLP(feature_dim + z2_dim + action_dim, z1_dim, hidden_units)
+        self.z1_posterior = GaussianMLP(feature_dim + z2_dim + action_dim, z1_dim, hidden_units, min_std)
 
         transition_dim = 2 * self.z_dim + action_dim
         # p(r_t | z_t, a_t, z_{t+1})
@@ -310,7 +322,7 @@ class LatentModel(nn.Module):
         sequences; the arguments are its own).
 
         :return: total scalar loss and the detached terms ``kl``, ``image_loss``, ``reward_loss``, ``cost_loss``
-            (each summed over time (and pixels), mean over the batch)
+            (each summed over time (and pixels), mean over the batch), with the diagnostics of ``loss_and_filter``
         """
         total, info, _ = self.loss_and_filter(observations, actions, rewards, costs, terminated, features=features)
         return total, info
@@ -338,8 +350,10 @@ class LatentModel(nn.Module):
         :param features: ``encode(observations)`` (B, T+1, feature_dim) if the caller already computed it
         :param other: observations (B', T+1, *observation_shape) and actions (B', T, A) of the other sequences
         :param noise: the rollout's noise (T+1, B + B', Z1) and (T+1, B + B', Z2), the loss's batch first; drawn if None
-        :return: the total loss, its detached terms (as ``loss``) and the other sequences' ``z = [z1, z2]``
-            (B', T+1, z_dim), or None without ``other``
+        :return: the total loss, its detached terms (as ``loss``) with the batch's extremes that name the cause of a
+            spike (``prior_std_min``, ``posterior_std_min``: the smallest std of z1's prior and posterior;
+            ``z_abs_max``, ``reconstruction_abs_max``: the largest |z| and |decoder output|), and the other sequences'
+            ``z = [z1, z2]`` (B', T+1, z_dim), or None without ``other``
         """
         self._check_sequence(observations, actions)
         if rewards.shape != actions.shape[:2] or costs.shape != rewards.shape or terminated.shape != rewards.shape:
@@ -387,7 +401,16 @@ class LatentModel(nn.Module):
         cost_loss = -self.cost_loss_weight * cost_ll.sum(dim=1).mean()
 
         total = kl + image_loss + reward_loss + cost_loss
-        info = {"kl": kl, "image_loss": image_loss, "reward_loss": reward_loss, "cost_loss": cost_loss}
+        info = {
+            "kl": kl,
+            "image_loss": image_loss,
+            "reward_loss": reward_loss,
+            "cost_loss": cost_loss,
+            "prior_std_min": prior_std[:, 1:].amin(),
+            "posterior_std_min": z1_std.amin(),
+            "z_abs_max": z.abs().amax(),
+            "reconstruction_abs_max": reconstruction.abs().amax(),
+        }
         return total, {key: value.detach() for key, value in info.items()}, other_z
 
     def sample_latents(self, observations: Tensor, actions: Tensor) -> Tensor:

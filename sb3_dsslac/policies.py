@@ -11,7 +11,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 
 from sb3_dsslac.actor import LatentActor
 from sb3_dsslac.critics import IQNCostCritic, MeanCostCritic, TwinQCritic
-from sb3_dsslac.latent import THESIS_IMAGE_CHANNELS, LatentModel
+from sb3_dsslac.latent import STD_EPS, THESIS_IMAGE_CHANNELS, LatentModel
 from sb3_dsslac.optim import fast_adam_kwargs
 
 # Filter state carried through ``predict``: (z2 (n_envs, z2_dim), previous action scaled to [-1, 1] (n_envs, action_dim))
@@ -44,6 +44,7 @@ class LatentPolicy(BasePolicy):
     :param cost_positive_weight: extra weight of unsafe (cost > 0) steps in the cost likelihood
     :param image_channels: output channels of the conv encoder's four stride-2 layers, mirrored by the decoder; the
         thesis's (32, 64, 128, 256) by default. Narrower convolutions are most of what makes a pixel update cheap
+    :param latent_min_std: the floor on the std of the latent Gaussians (1e-5 in the thesis code)
     :param latent_learning_rate: Adam step size of the latent model
     :param normalize_images: divide uint8 images by 255
     :param normalize_vectors: standardise vector observations with the mean and std of the warm-up data (set once by
@@ -79,6 +80,7 @@ class LatentPolicy(BasePolicy):
         cost_loss_weight: float = 30.0,
         cost_positive_weight: float = 100.0,
         image_channels: tuple[int, ...] = THESIS_IMAGE_CHANNELS,
+        latent_min_std: float = STD_EPS,
         latent_learning_rate: float = 1e-4,
         normalize_images: bool = True,
         normalize_vectors: bool = True,
@@ -108,6 +110,7 @@ class LatentPolicy(BasePolicy):
         self.cost_loss_weight = cost_loss_weight
         self.cost_positive_weight = cost_positive_weight
         self.image_channels = tuple(image_channels)
+        self.latent_min_std = latent_min_std
         self.latent_learning_rate = latent_learning_rate
         self.normalize_vectors = normalize_vectors
         self._scale_images = normalize_images and is_image_space(observation_space)
@@ -131,6 +134,7 @@ class LatentPolicy(BasePolicy):
             cost_loss_weight=self.cost_loss_weight,
             cost_positive_weight=self.cost_positive_weight,
             image_channels=self.image_channels,
+            min_std=self.latent_min_std,
         )
         z_dim = self.latent.z_dim
         self.actor = LatentActor(z_dim, action_dim, self.hidden_units)
@@ -172,6 +176,7 @@ class LatentPolicy(BasePolicy):
                 cost_loss_weight=self.cost_loss_weight,
                 cost_positive_weight=self.cost_positive_weight,
                 image_channels=self.image_channels,
+                latent_min_std=self.latent_min_std,
                 latent_learning_rate=self.latent_learning_rate,
                 normalize_vectors=self.normalize_vectors,
                 optimizer_class=self.optimizer_class,

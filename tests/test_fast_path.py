@@ -146,9 +146,23 @@ def seeded_updates(model: DSSLAC, indices: th.Tensor) -> dict[str, list[th.Tenso
     return model._burst(indices)
 
 
-def test_compiled_update_matches_eager(monkeypatch) -> None:
-    # Inductor draws its own random numbers unless told to use eager's generator
-    monkeypatch.setattr(th._inductor.config, "fallback_random", True)
+LATENT_STATISTICS = {
+    "latent_loss",
+    "kl",
+    "image_loss",
+    "reward_loss",
+    "cost_loss",
+    "prior_std_min",
+    "posterior_std_min",
+    "z_abs_max",
+    "reconstruction_abs_max",
+}
+
+
+# Inductor draws its own random numbers unless told to use eager's generator (its config's own patch: monkeypatch's undo
+# deletes the setting, and later compilations in the process then fail)
+@th._inductor.config.patch(fallback_random=True)
+def test_compiled_update_matches_eager() -> None:
     eager, compiled = warmed_up_pair(compile_updates=True)
     indices = eager.replay_buffer.sample_indices(3, eager.latent_batch_size + eager.batch_size)
     with warnings.catch_warnings():
@@ -158,7 +172,14 @@ def test_compiled_update_matches_eager(monkeypatch) -> None:
     eager_stats = seeded_updates(eager, indices[:2])
     assert eager_stats.keys() == compiled_stats.keys()
     for key, values in eager_stats.items():
-        th.testing.assert_close(th.stack(compiled_stats[key]), th.stack(values), rtol=1e-4, atol=1e-4, msg=key)
+        # The first statistics come before any weight moved. After that, Adam's first step moves each weight by about
+        # its step size whatever its gradient's size, so a gradient that rounding alone keeps from zero (the two paths
+        # sum the products of the dense convolutions in other orders) moves its weight by +-lr either way
+        moved = 0
+        if key in LATENT_STATISTICS:  # the actor-critic's first statistics are of the step after the first latent update
+            th.testing.assert_close(compiled_stats[key][0], values[0], rtol=1e-4, atol=1e-4, msg=key)
+            moved = 1
+        th.testing.assert_close(th.stack(compiled_stats[key][moved:]), th.stack(values[moved:]), rtol=1e-2, atol=1e-3, msg=key)
     # The whole step is one graph: a few hundred ops where eager dispatches thousands, and no host read
     batch, waiting = (compiled.replay_buffer.gather(indices[k]) for k in (2, 0))
     waiting = type(waiting)(*(field[compiled.latent_batch_size :] for field in waiting))

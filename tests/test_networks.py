@@ -81,9 +81,11 @@ def test_latent_model_shapes_and_gradients(observation_shape):
 
     total, info = model.loss(observations, actions, rewards, costs, terminated)
     assert total.shape == ()
-    assert set(info) == {"kl", "image_loss", "reward_loss", "cost_loss"}
+    terms = ("kl", "image_loss", "reward_loss", "cost_loss")
+    assert set(info) == {*terms, "prior_std_min", "posterior_std_min", "z_abs_max", "reconstruction_abs_max"}
     assert all(not value.requires_grad and torch.isfinite(value) for value in info.values())
-    torch.testing.assert_close(total.detach(), sum(info.values()))
+    torch.testing.assert_close(total.detach(), sum(info[name] for name in terms))
+    assert 0 < info["posterior_std_min"] <= rollout.z1_std.max()
     assert info["kl"] >= 0
     total.backward()
     for name, param in model.named_parameters():
@@ -306,3 +308,28 @@ def test_fixed_std_nll_is_the_elementwise_nll_summed_per_row_and_averaged() -> N
     (grad,) = torch.autograd.grad(loss, mean)
     (expected_grad,) = torch.autograd.grad(expected, mean)
     torch.testing.assert_close(grad, expected_grad)
+
+
+def test_latent_min_std_keeps_the_kl_finite_when_the_prior_collapses():
+    """A prior whose std is driven to its floor: the KL grows as 1 / floor^2, so a floor of 0.1 keeps it bounded."""
+    kls = {}
+    for min_std in (1e-5, 0.1):
+        torch.manual_seed(0)
+        model = make_model((5,), min_std=min_std)
+        last = model.z1_prior.net[-1]
+        with torch.no_grad():
+            last.bias[Z1:] = -1e4  # softplus(raw std) underflows to 0: the prior std sits at the floor
+            last.bias[:Z1] = 3.0  # and its mean away from the posterior's
+        observations, actions, rewards, costs, terminated = make_batch((5,))
+        total, info = model.loss(observations, actions, rewards, costs, terminated)
+        total.backward()
+        assert info["prior_std_min"] == pytest.approx(min_std)
+        assert all(torch.isfinite(param.grad).all() for param in model.parameters())
+        kls[min_std] = float(info["kl"])
+    assert kls[1e-5] > 1e8
+    assert math.isfinite(kls[0.1]) and kls[0.1] < 1e5
+
+
+def test_latent_min_std_must_be_positive():
+    with pytest.raises(ValueError, match="min_std"):
+        make_model((5,), min_std=0.0)

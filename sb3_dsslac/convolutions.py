@@ -1,0 +1,116 @@
+"""
+The latent model's convolution layers, each computed the fastest way we measured on a CPU for its shape, with the
+parameters (names, shapes, initialisation) of the ``torch.nn`` layer it subclasses, so checkpoints load either way.
+
+- A convolution whose kernel covers its whole unpadded input (the encoder's last layer, 4x4 onto 4x4) and a transposed
+  convolution from a 1x1 input (the decoder's first layer) are one matrix product each: about a fifth of oneDNN's time
+  for these shapes, forward and backward.
+- A stride-2 transposed convolution runs its forward pass as a stride-1 convolution onto ``stride**2`` phase images,
+  interleaved by ``pixel_shuffle`` (a sub-pixel convolution: each output pixel sums the same products in another order),
+  and its backward pass through ATen's own transposed-convolution gradient: oneDNN's transposed convolution onto 3
+  channels pads them to 8, and took 2.7x the time of the sub-pixel form (80 frames of 16x16 onto 32x32).
+"""
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+
+class DenseConv2d(nn.Conv2d):
+    """``nn.Conv2d`` on inputs of the kernel's size (one output) as one matrix product: (N, C, k, k) -> (N, C', 1, 1)."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        if tuple(x.shape[-2:]) != self.kernel_size or self.padding != (0, 0):
+            return super().forward(x)
+        out = F.linear(x.reshape(x.shape[0], -1), self.weight.reshape(self.out_channels, -1), self.bias)
+        return out.view(x.shape[0], self.out_channels, 1, 1)
+
+
+class DenseConvTranspose2d(nn.ConvTranspose2d):
+    """``nn.ConvTranspose2d`` from a 1x1 input with no padding: one matrix product, (N, C, 1, 1) -> (N, C', k, k)."""
+
+    def forward(self, x: Tensor, output_size: list[int] | None = None) -> Tensor:
+        if tuple(x.shape[-2:]) != (1, 1) or self.padding != (0, 0) or self.output_padding != (0, 0) or output_size:
+            return super().forward(x, output_size)
+        height, width = self.kernel_size
+        weight = self.weight.reshape(self.in_channels, -1)  # (C, C' * k * k)
+        out = x.reshape(x.shape[0], self.in_channels).mm(weight).view(x.shape[0], self.out_channels, height, width)
+        return out if self.bias is None else out + self.bias.view(1, -1, 1, 1)
+
+
+def subpixel_kernel(weight: Tensor, stride: int) -> Tensor:
+    """
+    The stride-1 correlation kernels of a stride-``stride`` transposed convolution, one per output phase.
+
+    :param weight: the transposed convolution's weight (C_in, C_out, k, k)
+    :return: (C_out * stride**2, C_in, m, m) with ``m = ceil(k / stride)``, channels ordered as ``pixel_shuffle`` reads
+        them (output channel, then row phase, then column phase); phase r's tap t is weight tap ``r + stride * (m-1-t)``,
+        zero past the kernel. Built by padding, reshaping and flipping only, so its gradient is as cheap
+    """
+    in_channels, out_channels, kernel, _ = weight.shape
+    taps = -(-kernel // stride)
+    padded = F.pad(weight, (0, stride * taps - kernel, 0, stride * taps - kernel))
+    # Tap j = stride * u + r: (C_in, C_out, u_y, r_y, u_x, r_x), then t = m - 1 - u
+    phases = padded.view(in_channels, out_channels, taps, stride, taps, stride).flip(2, 4)
+    return phases.permute(1, 3, 5, 0, 2, 4).reshape(out_channels * stride * stride, in_channels, taps, taps)
+
+
+def subpixel_conv_transpose2d(
+    x: Tensor, weight: Tensor, bias: Tensor | None, stride: int, padding: int, output_padding: int
+) -> Tensor:
+    """
+    ``F.conv_transpose2d`` of square images and kernels as a sub-pixel convolution: (N, C_in, H, H) -> (N, C_out, O, O)
+    with ``O = (H - 1) * stride - 2 * padding + k + output_padding``.
+    """
+    height, kernel = x.shape[-1], weight.shape[-1]
+    taps = -(-kernel // stride)
+    size = (height - 1) * stride - 2 * padding + kernel + output_padding
+    # Output pixel o = stride * q + r - padding sums x[q - i] * weight[r + stride * i]: the phase images' rows q
+    first, last = padding // stride, (padding + size - 1) // stride
+    before, after = taps - 1 - first, last - (height - 1)
+    padded = F.pad(x, (before, after, before, after))
+    phase_bias = None if bias is None else bias.repeat_interleave(stride * stride)
+    phases = F.conv2d(padded, subpixel_kernel(weight, stride), phase_bias)
+    offset = padding - stride * first
+    return F.pixel_shuffle(phases, stride)[:, :, offset : offset + size, offset : offset + size]
+
+
+class _SubpixelConvTranspose(torch.autograd.Function):
+    """A transposed convolution forward as a sub-pixel convolution, backward through ATen's own gradient."""
+
+    @staticmethod
+    def forward(ctx, x, weight, bias, stride: int, padding: int, output_padding: int):  # type: ignore[override]
+        ctx.save_for_backward(x, weight)
+        ctx.geometry = (stride, padding, output_padding)
+        ctx.has_bias = bias is not None
+        return subpixel_conv_transpose2d(x, weight, bias, stride, padding, output_padding)
+
+    @staticmethod
+    def backward(ctx, grad):  # type: ignore[override]
+        x, weight = ctx.saved_tensors
+        stride, padding, output_padding = ctx.geometry
+        grad_x, grad_weight, grad_bias = torch.ops.aten.convolution_backward(
+            grad.contiguous(),
+            x,
+            weight,
+            [weight.shape[1]] if ctx.has_bias else None,
+            [stride, stride],
+            [padding, padding],
+            [1, 1],
+            True,
+            [output_padding, output_padding],
+            1,
+            [ctx.needs_input_grad[0], ctx.needs_input_grad[1], ctx.has_bias and ctx.needs_input_grad[2]],
+        )
+        return grad_x, grad_weight, grad_bias, None, None, None
+
+
+class SubpixelConvTranspose2d(nn.ConvTranspose2d):
+    """``nn.ConvTranspose2d`` (square, stride > 1, no dilation or groups) whose forward pass is a sub-pixel convolution."""
+
+    def forward(self, x: Tensor, output_size: list[int] | None = None) -> Tensor:
+        (stride, _), (padding, _), (output_padding, _) = self.stride, self.padding, self.output_padding
+        plain = output_size is not None or self.groups != 1 or self.dilation != (1, 1) or x.shape[-1] != x.shape[-2]
+        if plain or torch.is_autocast_enabled(x.device.type):  # autocast casts the inputs of ATen's own layer only
+            return super().forward(x, output_size)
+        return _SubpixelConvTranspose.apply(x, self.weight, self.bias, stride, padding, output_padding)
