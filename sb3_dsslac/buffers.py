@@ -129,13 +129,6 @@ class SequenceReplayBuffer(ReplayBuffer):
         """Bytes held by all host storage arrays."""
         return sum(getattr(self, name).nbytes for name in self._STORAGE)
 
-    @property
-    def device_nbytes(self) -> int:
-        """Bytes of the device copy (0 on the CPU, where sampling reads the host arrays)."""
-        if self._device_copy is None:
-            return 0
-        return sum(tensor.numel() * tensor.element_size() for tensor in self._device_copy.values())
-
     def reset(self) -> None:
         """Forget every stored record (the arrays are kept)."""
         self.episode_ids.fill(-1)
