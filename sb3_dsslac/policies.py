@@ -95,6 +95,7 @@ class LatentPolicy(BasePolicy):
             normalize_images=normalize_images,
             squash_output=True,
         )
+        self.action_dim = int(np.prod(action_space.shape))  # actions are flat vectors (n, action_dim) inside the policy
         self.z1_dim = z1_dim
         self.z2_dim = z2_dim
         self.feature_dim = feature_dim
@@ -121,10 +122,9 @@ class LatentPolicy(BasePolicy):
 
     def _build(self, lr_schedule: Schedule) -> None:
         assert self.observation_space.shape is not None
-        action_dim = int(np.prod(self.action_space.shape))
         self.latent = LatentModel(
             tuple(self.observation_space.shape),
-            action_dim,
+            self.action_dim,
             feature_dim=self.feature_dim,
             z1_dim=self.z1_dim,
             z2_dim=self.z2_dim,
@@ -137,11 +137,11 @@ class LatentPolicy(BasePolicy):
             min_std=self.latent_min_std,
         )
         z_dim = self.latent.z_dim
-        self.actor = LatentActor(z_dim, action_dim, self.hidden_units)
-        self.critic = TwinQCritic(z_dim, action_dim, self.hidden_units)
-        self.critic_target = TwinQCritic(z_dim, action_dim, self.hidden_units)
+        self.actor = LatentActor(z_dim, self.action_dim, self.hidden_units)
+        self.critic = TwinQCritic(z_dim, self.action_dim, self.hidden_units)
+        self.critic_target = TwinQCritic(z_dim, self.action_dim, self.hidden_units)
         self.critic_target.load_state_dict(self.critic.state_dict())
-        self.cost_critic, self.cost_critic_target = (self._make_cost_critic(z_dim, action_dim) for _ in range(2))
+        self.cost_critic, self.cost_critic_target = (self._make_cost_critic(z_dim, self.action_dim) for _ in range(2))
         self.cost_critic_target.load_state_dict(self.cost_critic.state_dict())
         for target in (self.critic_target, self.cost_critic_target):
             target.requires_grad_(False)
@@ -210,8 +210,7 @@ class LatentPolicy(BasePolicy):
 
     def initial_state(self, n_envs: int) -> tuple[th.Tensor, th.Tensor]:
         """Zero filter state (z2, previous action) for ``n_envs`` envs, on the policy's device."""
-        action_dim = int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
-        return th.zeros(n_envs, self.z2_dim, device=self.device), th.zeros(n_envs, action_dim, device=self.device)
+        return th.zeros(n_envs, self.z2_dim, device=self.device), th.zeros(n_envs, self.action_dim, device=self.device)
 
     def belief_step(
         self, observation: th.Tensor, z2_prev: th.Tensor, action_prev: th.Tensor, episode_start: th.Tensor, deterministic: bool
