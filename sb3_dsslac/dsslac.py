@@ -1,6 +1,7 @@
 """DS-SLAC: Distributional Safe Stochastic Latent Actor-Critic as a Stable-Baselines3 off-policy algorithm."""
 
 import contextlib
+import inspect
 import math
 import warnings
 from collections import defaultdict, deque
@@ -13,10 +14,12 @@ from gymnasium import spaces
 from sb3_contrib.common.utils import quantile_huber_loss
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TrainFreq, TrainFrequencyUnit
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import safe_mean, update_learning_rate
+from stable_baselines3.common.vec_env import VecEnv
 from torch.nn import functional as F
 from tqdm.auto import tqdm
 
@@ -95,13 +98,10 @@ def _reduce_burst(name: str, values: th.Tensor) -> th.Tensor:
     return values.mean()
 
 
-# Keywords of both DSSLAC and LatentPolicy, with their defaults (the code behind the thesis numbers)
+# Keywords of both DSSLAC and LatentPolicy, with LatentPolicy's defaults (the code behind the thesis numbers)
 SHARED_POLICY_KEYWORDS: dict[str, Any] = {
-    "image_noise": 0.4,
-    "cost_loss_weight": 30.0,
-    "cost_positive_weight": 100.0,
-    "latent_learning_rate": 1e-4,
-    "cost_critic": "iqn",
+    name: inspect.signature(LatentPolicy).parameters[name].default
+    for name in ("image_noise", "cost_loss_weight", "cost_positive_weight", "latent_learning_rate", "cost_critic")
 }
 
 
@@ -132,7 +132,9 @@ class DSSLAC(OffPolicyAlgorithm):
     on-policy from the real costs of the training episodes, trades reward against the cost budget.
 
     Units: one timestep is one ``env.step`` (an agent step, ``action_repeat`` simulator steps). Costs come from
-    ``info["cost"]``. Defaults are the thesis's Table 5.2 and the code behind its numbers.
+    ``info["cost"]``. Defaults are the thesis's Table 5.2 and the code behind its numbers. The keywords of
+    ``SHARED_POLICY_KEYWORDS`` are also ``LatentPolicy``'s: None takes ``policy_kwargs``' value, else ``LatentPolicy``'s
+    default; given both here and in ``policy_kwargs``, they must agree, else a ValueError.
 
     :param policy: "LatentPolicy" or the class
     :param env: the env or its registered id; must report ``info["cost"]`` every step
@@ -149,7 +151,7 @@ class DSSLAC(OffPolicyAlgorithm):
     :param train_freq: agent steps between training bursts; with ``n_envs`` envs it counts agent steps over all envs
         (it becomes ``train_freq / n_envs`` calls of ``env.step``), so the updates per agent step stay the same
     :param gradient_steps: updates per burst (each is one latent and one actor-critic update)
-    :param latent_learning_rate: Adam step size of the latent model (None: ``policy_kwargs``' value, else 1e-4)
+    :param latent_learning_rate: Adam step size of the latent model
     :param ent_coef: entropy coefficient, "auto" (learned from 1.0) or "auto_<init>" (learned from init), or a float
     :param target_entropy: target entropy of the learned coefficient; "auto" is ``-action_dim``
     :param cost_limit: cost budget per episode (Safety-Gym: 25 per 1000 simulator steps); evaluations are judged by it
@@ -174,17 +176,14 @@ class DSSLAC(OffPolicyAlgorithm):
     :param pid_kd: derivative gain of the "pid" rule
     :param pid_cost_ema: smoothing of the episode costs that the "pid" rule's proportional and derivative terms act on
         (an exponential moving average with this weight on the past; 0: each episode's own cost)
-    :param cost_critic: "iqn" (DS-SLAC's distributional critic) or "mean" (Safe SLAC's expectation critic); None:
-        ``policy_kwargs``' value, else "iqn"
+    :param cost_critic: "iqn" (DS-SLAC's distributional critic) or "mean" (Safe SLAC's expectation critic)
     :param n_quantiles: N = N' = K, the quantile fractions sampled per update by the IQN critic and the actor
     :param cvar_risk_level: beta in (0, 1]: the actor's K fractions are drawn from U(1 - beta, 1); 1.0 is the mean
     :param max_grad_norm: gradient-norm clip of the latent model and the critics
     :param actor_max_grad_norm: gradient-norm clip of the actor (80 in the reference code)
-    :param image_noise: variance of the Gaussian observation likelihood (None: ``policy_kwargs``' value, else 0.4)
-    :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss (None: ``policy_kwargs``' value,
-        else 30)
-    :param cost_positive_weight: extra weight of unsafe steps in the cost likelihood (None: ``policy_kwargs``' value,
-        else 100)
+    :param image_noise: variance of the Gaussian observation likelihood
+    :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss
+    :param cost_positive_weight: extra weight of unsafe steps in the cost likelihood
     :param share_latent_batch: one sampled batch and one encoder pass per update: the latent model trains on the first
         ``latent_batch_size`` sequences, and the actor-critic update uses the posterior of the first ``batch_size``
         from the same features (before the latent step). False keeps the thesis's two independent batches
@@ -200,9 +199,7 @@ class DSSLAC(OffPolicyAlgorithm):
     :param replay_buffer_kwargs: extra keywords of the ``SequenceReplayBuffer``
     :param stats_window_size: episodes averaged in the rollout logs
     :param tensorboard_log: TensorBoard log folder
-    :param policy_kwargs: keywords of the policy (``z1_dim``, ``z2_dim``, ``feature_dim``, ``hidden_units``, ``n_cosines``);
-        a keyword given both here and to DSSLAC (``image_noise``, ``cost_loss_weight``, ``cost_positive_weight``,
-        ``latent_learning_rate``, ``cost_critic``) must have the same value in both, else a ValueError
+    :param policy_kwargs: keywords of the policy (``z1_dim``, ``z2_dim``, ``feature_dim``, ``hidden_units``, ``n_cosines``)
     :param verbose: 0 silent, 1 info (with a progress bar for the latent pre-training), 2 debug
     :param seed: random seed
     :param device: "cpu", "cuda" or "auto"
@@ -533,10 +530,12 @@ class DSSLAC(OffPolicyAlgorithm):
                 callback = [LagrangeCallback(), callback]
         return super()._init_callback(callback, progress_bar)
 
-    def _sample_action(self, learning_starts: int, action_noise: Any = None, n_envs: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def _sample_action(
+        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
         """
         Advance the training envs' latent filter on the last observation and act: ``tanh(N(0, 2^2))`` random actions
-        during the warm-up (they advance the filter too), the stochastic actor afterwards.
+        during the warm-up (they advance the filter too), the stochastic actor afterwards. No action noise.
         """
         assert self._last_obs is not None and isinstance(self._last_obs, np.ndarray)
         if self._last_filter_state is None:
@@ -562,10 +561,21 @@ class DSSLAC(OffPolicyAlgorithm):
             )
         return self.policy.unscale_action(buffer_action), buffer_action
 
-    def collect_rollouts(self, *args: Any, **kwargs: Any) -> Any:
+    def collect_rollouts(
+        self,
+        env: VecEnv,
+        callback: BaseCallback,
+        train_freq: TrainFreq,
+        replay_buffer: ReplayBuffer,
+        action_noise: ActionNoise | None = None,
+        learning_starts: int = 0,
+        log_interval: int | None = None,
+    ) -> RolloutReturn:
         """SB3's ``collect_rollouts``, its time counted as acting (callbacks that measure their own excepted)."""
         with self.time_account.measure("acting"):
-            return super().collect_rollouts(*args, **kwargs)
+            return super().collect_rollouts(
+                env, callback, train_freq, replay_buffer, action_noise, learning_starts, log_interval
+            )
 
     @property
     def _action_dim(self) -> int:
@@ -590,18 +600,21 @@ class DSSLAC(OffPolicyAlgorithm):
         self._last_episode_starts = np.array(dones, dtype=bool)
 
     def dump_logs(self) -> None:
+        """SB3's logs, with the episode costs, the simulator steps and the time account; its time counted as logging."""
         with self.time_account.measure("logging"):
-            self._dump_logs()
+            for name, seconds in self.time_account.summary().items():
+                self.logger.record(f"time/{name}_s", round(seconds, 1))
+            sim_steps = self.num_timesteps * self.action_repeat
+            if len(self.ep_cost_buffer) > 0:
+                self.logger.record("rollout/ep_cost_mean", safe_mean(list(self.ep_cost_buffer)))
+            self.logger.record("rollout/cost_rate", self.total_cost / max(sim_steps, 1))
+            self.logger.record("time/sim_steps", sim_steps)
+            if hasattr(super(), "dump_logs"):
+                super().dump_logs()
+            else:  # SB3 before 2.6 names it _dump_logs
+                super()._dump_logs()
 
-    def _dump_logs(self) -> None:
-        for name, seconds in self.time_account.summary().items():
-            self.logger.record(f"time/{name}_s", round(seconds, 1))
-        sim_steps = self.num_timesteps * self.action_repeat
-        if len(self.ep_cost_buffer) > 0:
-            self.logger.record("rollout/ep_cost_mean", safe_mean(list(self.ep_cost_buffer)))
-        self.logger.record("rollout/cost_rate", self.total_cost / max(sim_steps, 1))
-        self.logger.record("time/sim_steps", sim_steps)
-        super().dump_logs()
+    _dump_logs = dump_logs  # the name SB3 before 2.6 calls
 
     # ----------------------------------------------------------------------------------------------------------------
     # Learning
