@@ -61,7 +61,7 @@ class ThesisStyleUpdates:
     def __init__(self, model: DSSLAC) -> None:
         self.model = model
         model.policy.latent.to(memory_format=th.contiguous_format)
-        model._update_targets = self._python_loop_polyak  # type: ignore[method-assign]
+        model.updates.step.update_targets = self._python_loop_polyak  # type: ignore[method-assign]
         buffer = model.replay_buffer
         length = buffer.sequence_length
         valid = buffer.valid_windows(length)
@@ -85,11 +85,11 @@ class ThesisStyleUpdates:
     def update(self) -> None:
         """One latent update on its own batch, then one actor-critic update on a second batch encoded again."""
         model = self.model
-        model._latent_update(self.sample(model.latent_batch_size))
+        model.updates.step.latent_update(self.sample(model.latent_batch_size))
         batch = self.sample(model.batch_size)
         with th.no_grad():
             latents = model.policy.latent.sample_latents(model.policy.preprocess(batch.observations), batch.actions)
-        model._actor_critic_update(batch, latents)
+        model.updates.step.actor_critic_update(batch, latents)
         with th.no_grad():  # the reference logs the cost critic's value with one more forward pass
             taus = sample_taus(model.batch_size, model.n_quantiles, model.device)
             model.policy.cost_critic(latents[:, -2], batch.actions[:, -1], taus).mean().item()

@@ -1,102 +1,34 @@
 """DS-SLAC: Distributional Safe Stochastic Latent Actor-Critic as a Stable-Baselines3 off-policy algorithm."""
 
-import contextlib
 import inspect
 import math
 import warnings
-from collections import defaultdict, deque
-from collections.abc import Callable, Iterator
+from collections import deque
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from sb3_contrib.common.utils import quantile_huber_loss
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.save_util import recursive_getattr
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import safe_mean, update_learning_rate
 from stable_baselines3.common.vec_env import VecEnv
-from torch.nn import functional as F
-from tqdm.auto import tqdm
 
-from sb3_dsslac.buffers import SequenceBatch, SequenceReplayBuffer
-from sb3_dsslac.critics import IQNCostCritic, sample_taus
+from sb3_dsslac.buffers import SequenceReplayBuffer
+from sb3_dsslac.bursts import UpdateBursts
 from sb3_dsslac.env_info import action_repeat_of, cost_from_info, episode_length_of
-from sb3_dsslac.lagrange import LAGRANGE_RULES, LagrangeCallback, inverse_softplus, sgd_lagrange_step_on_device, softplus
-from sb3_dsslac.optim import adam_step, clip_grads, init_adam_state
+from sb3_dsslac.gradient_step import GradientStep
+from sb3_dsslac.lagrange import LAGRANGE_RULES, CostBudget, inverse_softplus, with_lagrange_callback
+from sb3_dsslac.numerics import raise_if_action_not_finite, resolve_bf16, tf32_matmul
 from sb3_dsslac.policies import LatentPolicy
 from sb3_dsslac.timing import TimeAccount
 
 SelfDSSLAC = TypeVar("SelfDSSLAC", bound="DSSLAC")
-
-
-@contextlib.contextmanager
-def tf32_matmul(enabled: bool) -> Iterator[None]:
-    """
-    TF32 for CUDA float32 matrix products and cuDNN convolutions inside the block when ``enabled`` (PyTorch's switches
-    are process-wide, so the previous values come back when the block ends, also on an error); nothing otherwise.
-    """
-    if not enabled:
-        yield
-        return
-    previous = th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32
-    th.backends.cuda.matmul.allow_tf32 = th.backends.cudnn.allow_tf32 = True
-    try:
-        yield
-    finally:
-        th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32 = previous
-
-
-def has_native_bf16(device: th.device) -> bool:
-    """Whether ``device`` computes bfloat16 natively: a CUDA GPU that supports it, or a CPU with AVX512-BF16 or AMX."""
-    if device.type == "cuda":
-        return th.cuda.is_bf16_supported()
-    if device.type == "cpu":
-        return th.cpu._is_avx512_bf16_supported() or th.cpu._is_amx_tile_supported()
-    return False
-
-
-def resolve_bf16(bf16: bool | str, device: th.device) -> bool:
-    """
-    Whether the latent model's passes run under bfloat16 autocast: ``"auto"`` where the device computes bfloat16
-    natively; ``True`` too, with a warning and float32 instead where it does not (emulated bfloat16 made the update
-    7x slower on an AVX2-only CPU); ``False`` never.
-    """
-    if bf16 not in (True, False, "auto"):
-        raise ValueError(f"bf16 must be True, False or 'auto', got {bf16!r}")
-    if bf16 is False:
-        return False
-    native = has_native_bf16(device)
-    if bf16 is True and not native:
-        warnings.warn(
-            f"bf16=True, but this {device.type} has no native bfloat16 (no AVX512-BF16 or AMX on a CPU), where it is "
-            "several times slower than float32: the latent model stays in float32. Pass bf16='auto' to choose silently."
-        )
-    return native
-
-
-def _has_lagrange_callback(callback: MaybeCallback) -> bool:
-    if isinstance(callback, LagrangeCallback):
-        return True
-    if isinstance(callback, CallbackList):
-        return any(_has_lagrange_callback(child) for child in callback.callbacks)
-    if isinstance(callback, list):
-        return any(_has_lagrange_callback(child) for child in callback)
-    return False
-
-
-def _reduce_burst(name: str, values: th.Tensor) -> th.Tensor:
-    """A statistic over a burst (U,) -> (): the least of a ``*_min`` one, the most of a ``*_max`` one, else the mean."""
-    if name.endswith("_min"):
-        return values.amin()
-    if name.endswith("_max"):
-        return values.amax()
-    return values.mean()
-
 
 # Keywords of both DSSLAC and LatentPolicy, with LatentPolicy's defaults (the code behind the thesis numbers)
 SHARED_POLICY_KEYWORDS: dict[str, Any] = {
@@ -123,7 +55,22 @@ def _merge_shared_keywords(policy_kwargs: dict[str, Any], **given: Any) -> dict[
     return policy_kwargs
 
 
-class DSSLAC(OffPolicyAlgorithm):
+def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
+    """Raise a ValueError naming the fix for spaces DS-SLAC cannot handle."""
+    if not isinstance(action_space, spaces.Box):
+        raise ValueError(
+            f"DS-SLAC needs a continuous Box action space, got {action_space}. "
+            "Discrete-action envs need a different algorithm (or a wrapper mapping a Box to the discrete actions)."
+        )
+    if not isinstance(observation_space, spaces.Box) or len(observation_space.shape) not in (1, 3):
+        raise ValueError(
+            f"DS-SLAC encodes Box images (C, H, W) or flat Box vectors, got {observation_space}. "
+            "For safety_envs use obs_type='pixels' or obs_type='state'; "
+            "flatten or select Dict observations with a wrapper."
+        )
+
+
+class DSSLAC(CostBudget, OffPolicyAlgorithm):
     """
     Distributional Safe Stochastic Latent Actor-Critic (Miranda, 2023), built on Safe SLAC (Hogewind et al., 2023).
 
@@ -167,9 +114,8 @@ class DSSLAC(OffPolicyAlgorithm):
     :param lagrange_learning_rate: SGD step size of the multiplier's raw (pre-softplus) parameter
     :param lr_decay_milestone: agent steps (counted from the start of training, warm-up included) from which every step
         size (actor, both critics, entropy coefficient, latent model and multiplier) is multiplied by
-        ``lr_decay_factor``; None: no decay. The code behind the thesis numbers halves them all once at 230_000 (its
-        ``MultiStepLR`` milestone 400, stepped every 1000 simulator steps after the 60k-step warm-up: 460k simulator
-        steps), which the ``thesis`` presets set
+        ``lr_decay_factor``; None: no decay. The ``thesis`` presets set the reference code's 230_000 (see
+        ``presets.THESIS_LR_DECAY_MILESTONE``)
     :param lr_decay_factor: the factor applied from ``lr_decay_milestone`` on (0.5 in the reference code)
     :param pid_kp: proportional gain of the "pid" rule (multiplier per unit of episode cost over the budget)
     :param pid_ki: integral gain of the "pid" rule
@@ -209,7 +155,6 @@ class DSSLAC(OffPolicyAlgorithm):
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"LatentPolicy": LatentPolicy}
     policy: LatentPolicy
     replay_buffer: SequenceReplayBuffer
-    _PRETRAIN_BURST = 100  # latent pre-training updates whose windows are drawn at once
 
     def __init__(
         self,
@@ -332,7 +277,7 @@ class DSSLAC(OffPolicyAlgorithm):
         self.ep_cost_buffer: deque[float] = deque(maxlen=stats_window_size)
 
         if self.env is not None:
-            self._check_spaces(self.observation_space, self.action_space)
+            _check_spaces(self.observation_space, self.action_space)
             self.action_repeat = action_repeat_of(self.env)
             if self.episode_length is None:
                 self.episode_length = episode_length_of(self.env)
@@ -358,65 +303,6 @@ class DSSLAC(OffPolicyAlgorithm):
         if _init_setup_model:
             self._setup_model()
 
-    @staticmethod
-    def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
-        """Raise a ValueError naming the fix for spaces DS-SLAC cannot handle."""
-        if not isinstance(action_space, spaces.Box):
-            raise ValueError(
-                f"DS-SLAC needs a continuous Box action space, got {action_space}. "
-                "Discrete-action envs need a different algorithm (or a wrapper mapping a Box to the discrete actions)."
-            )
-        if not isinstance(observation_space, spaces.Box) or len(observation_space.shape) not in (1, 3):
-            raise ValueError(
-                f"DS-SLAC encodes Box images (C, H, W) or flat Box vectors, got {observation_space}. "
-                "For safety_envs use obs_type='pixels' or obs_type='state'; "
-                "flatten or select Dict observations with a wrapper."
-            )
-
-    @property
-    def episode_cost_target(self) -> float:
-        """The episode cost the multiplier aims at: ``cost_target``, else ``cost_limit``."""
-        return self.cost_limit if self.cost_target is None else self.cost_target
-
-    @property
-    def cost_budget_per_step(self) -> float:
-        """The multiplier's episode target spread over the agent steps of an episode (25 / 500 = 0.05 for the thesis)."""
-        assert self.episode_length is not None
-        return self.episode_cost_target / self.episode_length
-
-    @property
-    def discounted_cost_budget(self) -> float:
-        """The per-step budget discounted over an episode with ``cost_gamma``: 9.184 for the thesis setting."""
-        assert self.episode_length is not None
-        return self.cost_budget_per_step * (1.0 - self.cost_gamma**self.episode_length) / (1.0 - self.cost_gamma)
-
-    @property
-    def lr_decay_multiplier(self) -> float:
-        """The factor on every step size now: ``lr_decay_factor`` from agent step ``lr_decay_milestone`` on, else 1."""
-        if self.lr_decay_milestone is not None and self.num_timesteps >= self.lr_decay_milestone:
-            return self.lr_decay_factor
-        return 1.0
-
-    @property
-    def current_lagrange_learning_rate(self) -> float:
-        """The multiplier's SGD step size now: ``lagrange_learning_rate`` times ``lr_decay_multiplier``."""
-        return self.lagrange_learning_rate * self.lr_decay_multiplier
-
-    @property
-    def critic_cost_budget(self) -> float:
-        """
-        The budget of the "critic" rule: ``cost_budget_per_step / (1 - cost_gamma)``, 10.0 for the thesis setting, the
-        value the critic's (infinite-horizon, time-limit-bootstrapped) estimate converges to at exactly the per-step
-        budget. Against ``discounted_cost_budget`` (9.184, discounting stopped at the episode end) the rule would hold
-        the episode cost to about 23 instead of 25.
-        """
-        return self.cost_budget_per_step / (1.0 - self.cost_gamma)
-
-    @property
-    def lagrange_multiplier(self) -> float:
-        """The current Lagrange multiplier (softplus of its raw parameter)."""
-        return softplus(float(self.lagrange_raw.numpy()))
-
     def _convert_train_freq(self) -> None:
         """SB3's conversion, then a step frequency counted in agent steps over all envs becomes ``env.step`` calls."""
         converting = not isinstance(self.train_freq, TrainFreq)
@@ -433,70 +319,46 @@ class DSSLAC(OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
-        self._bf16_active = resolve_bf16(self.bf16, self.device)
         self.lagrange_raw = th.tensor(inverse_softplus(self.lagrange_init), dtype=th.float64)
-        if self.target_entropy == "auto":
-            self.target_entropy = -float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
-        else:
-            self.target_entropy = float(self.target_entropy)
+        self.target_entropy = -float(self.policy.action_dim) if self.target_entropy == "auto" else float(self.target_entropy)
         self.ent_coef_optimizer: th.optim.Adam | None = None
+        log_ent_coef = ent_coef_tensor = None
         if isinstance(self.ent_coef, str) and self.ent_coef.startswith("auto"):
             init_value = float(self.ent_coef.split("_")[1]) if "_" in self.ent_coef else 1.0
             if init_value <= 0.0:
                 raise ValueError(f"The initial entropy coefficient must be greater than 0, got {self.ent_coef}")
-            self.log_ent_coef = th.log(th.full((1,), init_value, device=self.device)).requires_grad_(True)
+            self.log_ent_coef = log_ent_coef = th.log(th.full((1,), init_value, device=self.device)).requires_grad_(True)
             self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1), fused=True)
         else:
-            self.ent_coef_tensor = th.tensor(float(self.ent_coef), device=self.device)
-        self._setup_update_state()
+            self.ent_coef_tensor = ent_coef_tensor = th.tensor(float(self.ent_coef), device=self.device)
+        step = GradientStep(
+            self.policy,
+            [recursive_getattr(self, name) for name in self._optimizer_names()],
+            log_ent_coef,
+            self.ent_coef_optimizer,
+            ent_coef_tensor,
+            target_entropy=self.target_entropy,
+            gamma=self.gamma,
+            cost_gamma=self.cost_gamma,
+            tau=self.tau,
+            batch_size=self.batch_size,
+            latent_batch_size=self.latent_batch_size,
+            share_latent_batch=self.share_latent_batch,
+            n_quantiles=self.n_quantiles,
+            cvar_risk_level=self.cvar_risk_level,
+            max_grad_norm=self.max_grad_norm,
+            actor_max_grad_norm=self.actor_max_grad_norm,
+            critic_lagrange_budget=self.critic_cost_budget if self.lagrange == "critic" else None,
+            bf16=resolve_bf16(self.bf16, self.device),
+            device=self.device,
+        )
+        # The update engine: rebuilt here, never saved
+        self.updates = UpdateBursts(step, self.lagrange_raw, self.compile_updates, self.time_account)
 
-    def _setup_update_state(self) -> None:
-        """The device tensors that a burst of updates reads and writes instead of host values, and the compiled step."""
-        policy = self.policy
-        optimizers = [policy.latent_optimizer, policy.actor_optimizer, policy.critic_optimizer, policy.cost_critic_optimizer]
-        if self.ent_coef_optimizer is not None:
-            optimizers.append(self.ent_coef_optimizer)
-        self._learning_rates = {optimizer: th.zeros((), device=self.device) for optimizer in optimizers}
-        self._lagrange_raw_device = th.zeros((), device=self.device)
-        # float64 like the host's step sizes: the SGD rules step with exactly the same value on the host and the device
-        self._lagrange_learning_rate_device = th.zeros((), dtype=th.float64, device=self.device)
-        self._first_nonfinite_update = th.full((len(self._GUARDED_LOSSES),), -1, dtype=th.long, device=self.device)
-        self._burst_update_index = th.zeros((), dtype=th.long, device=self.device)
-        # How many steps before their own each guarded loss is computed when the updates are pipelined (_gradient_step)
-        lags = [0 if name == "latent_loss" else 1 for name in self._GUARDED_LOSSES]
-        self._pipelined_lags = th.tensor(lags, dtype=th.long, device=self.device)
-        self._target_params = [*policy.critic_target.parameters(), *policy.cost_critic_target.parameters()]
-        self._source_params = [*policy.critic.parameters(), *policy.cost_critic.parameters()]
-        # The reference trains the IQN's cosine and quantile nets with two optimizers, each clipped at 40: clipped apart
-        self._cost_critic_clip_groups: tuple[slice, ...] = (slice(None),)
-        if isinstance(policy.cost_critic, IQNCostCritic):
-            n_cosine = len(list(policy.cost_critic.cosine_net.parameters()))
-            assert list(policy.cost_critic.parameters())[:n_cosine] == list(policy.cost_critic.cosine_net.parameters())
-            self._cost_critic_clip_groups = (slice(0, n_cosine), slice(n_cosine, None))
-        self._compiled_steps: dict[str, Callable[..., dict[str, th.Tensor]]] = {}
-        self._compiled_once: set[str] = set()
-        if self.compile_updates:
-            if not hasattr(th._dynamo.config, "trace_autograd_ops"):
-                warnings.warn(
-                    f"compile_updates needs a torch whose compiler traces the backward pass (2.13 or newer), this is "
-                    f"{th.__version__}: the updates run eagerly"
-                )
-                return
-            # CUDA graphs on a GPU: the whole step is replayed as one graph. On a CPU the tensors keep the layouts that
-            # eager mode found fastest: inductor's own choice, channels-last convolutions, transposed the 3-channel frames
-            # and reconstructions on every step (28.5 against 25.7 updates/s at cpu_pixels32 sizes, one thread, AMD EPYC)
-            if self.device.type == "cuda":
-                options: dict[str, Any] = {"mode": "reduce-overhead"}
-            else:
-                options = {"options": {"layout_optimization": False}}
-            self._compiled_steps = {
-                step.__name__: th.compile(step, fullgraph=True, **options)
-                for step in (self._gradient_step, self._last_actor_critic_step)
-            }
-
-    # ----------------------------------------------------------------------------------------------------------------
-    # Acting
-    # ----------------------------------------------------------------------------------------------------------------
+    def _optimizer_names(self) -> list[str]:
+        """Every optimizer, by the attribute path it is saved under: the policy's four, then the entropy coefficient's."""
+        names = [f"policy.{network}_optimizer" for network in ("latent", "actor", "critic", "cost_critic")]
+        return [*names, "ent_coef_optimizer"] if self.ent_coef_optimizer is not None else names
 
     def _setup_learn(
         self,
@@ -521,14 +383,7 @@ class DSSLAC(OffPolicyAlgorithm):
 
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
         """Attach the on-policy ``LagrangeCallback`` unless the caller already passed one."""
-        if not _has_lagrange_callback(callback):
-            if callback is None:
-                callback = [LagrangeCallback()]
-            elif isinstance(callback, list):
-                callback = [LagrangeCallback(), *callback]
-            else:
-                callback = [LagrangeCallback(), callback]
-        return super()._init_callback(callback, progress_bar)
+        return super()._init_callback(with_lagrange_callback(callback), progress_bar)
 
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
@@ -546,19 +401,12 @@ class DSSLAC(OffPolicyAlgorithm):
         with th.inference_mode():
             z, z2 = self.policy.belief_step(observation, *self._last_filter_state, episode_start, deterministic=False)
             if self.num_timesteps < learning_starts:
-                scaled_action = th.tanh(2.0 * th.randn(n_envs, self._action_dim, device=self.device))
+                scaled_action = th.tanh(2.0 * th.randn(n_envs, self.policy.action_dim, device=self.device))
             else:
                 scaled_action = self.policy.actor(z)
         self._last_filter_state = (z2, scaled_action)
         buffer_action = scaled_action.cpu().numpy()
-        if not np.isfinite(buffer_action).all():
-            # Weights that overflowed in the last burst's final update, or finite weights whose filter overflows on a
-            # real frame: either way no later loss would be computed before the env rejects the action
-            raise RuntimeError(
-                f"DS-SLAC's action became NaN or inf at timestep {self.num_timesteps} (after update {self._n_updates}): "
-                "the latent filter or the actor overflowed, so the weights may hold NaN or huge values: go back to the "
-                "last checkpoint. Check train/kl and train/image_loss for a spike, or lower latent_learning_rate."
-            )
+        raise_if_action_not_finite(buffer_action, self.num_timesteps, self._n_updates)
         return self.policy.unscale_action(buffer_action), buffer_action
 
     def collect_rollouts(
@@ -576,10 +424,6 @@ class DSSLAC(OffPolicyAlgorithm):
             return super().collect_rollouts(
                 env, callback, train_freq, replay_buffer, action_noise, learning_starts, log_interval
             )
-
-    @property
-    def _action_dim(self) -> int:
-        return int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
 
     def _store_transition(
         self,
@@ -616,304 +460,20 @@ class DSSLAC(OffPolicyAlgorithm):
 
     _dump_logs = dump_logs  # the name SB3 before 2.6 calls
 
-    # ----------------------------------------------------------------------------------------------------------------
-    # Learning
-    # ----------------------------------------------------------------------------------------------------------------
-
-    # Losses checked for NaN/inf on the device during a burst, in this order (see ``_raise_if_not_finite``)
-    _GUARDED_LOSSES = ("latent_loss", "critic_loss", "cost_critic_loss", "actor_loss", "ent_coef_loss")
-
-    def _record_finite(self, losses: dict[str, th.Tensor], pipelined: bool = False) -> None:
-        """
-        Note on the device, without reading it, the first update of this burst in which each guarded loss of
-        ``losses`` (detached scalars; the guarded ones present must be a run of ``_GUARDED_LOSSES``) is NaN or inf: one
-        check for all of them. The burst reads the notes once, at its end (``_raise_if_not_finite``).
-
-        :param pipelined: the actor-critic losses belong to the step before the current one (``_gradient_step``)
-        """
-        names = [name for name in self._GUARDED_LOSSES if name in losses]
-        start = self._GUARDED_LOSSES.index(names[0])
-        assert tuple(names) == self._GUARDED_LOSSES[start : start + len(names)], names
-        first = self._first_nonfinite_update[start : start + len(names)]
-        not_finite = ~th.isfinite(th.stack([losses[name] for name in names]))
-        update = self._burst_update_index
-        if pipelined:
-            update = update - self._pipelined_lags[start : start + len(names)]
-        first.copy_(th.where((first < 0) & not_finite, update, first))
-
-    def _raise_if_not_finite(self, first_nonfinite: np.ndarray) -> None:
-        """Stop training, naming the loss and the update, when a burst noted a NaN or inf loss."""
-        # The earliest update, and in it the first loss computed (the others follow from it)
-        bad = [(int(update), index) for index, update in enumerate(first_nonfinite) if update >= 0]
-        if bad:
-            update, index = min(bad)
-            name = self._GUARDED_LOSSES[index]
-            raise RuntimeError(
-                f"DS-SLAC's {name} became NaN or inf at update {self._n_updates + update} (timestep {self.num_timesteps}); "
-                "training stopped at the end of that burst of updates, so the weights may hold NaN: go back to the last "
-                "checkpoint. Check the env's observations, rewards and costs for NaN/inf, or lower the learning rates."
-            )
-
     def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
         """
-        Set the step sizes for the current timestep: ``optimizers`` (actor, critics, entropy coefficient) follow
-        ``lr_schedule`` and the latent model ``latent_learning_rate``, each times ``lr_decay_multiplier``. A pure
-        function of ``num_timesteps`` and the progress, so a resumed run continues with the right step sizes.
+        Set the step sizes for the current timestep: the latent model's ``latent_learning_rate``, the others' (actor,
+        critics, entropy coefficient) ``lr_schedule``, each times ``lr_decay_multiplier``. A pure function of
+        ``num_timesteps`` and the progress, so a resumed run continues with the right step sizes.
         """
-        if not isinstance(optimizers, list):
-            optimizers = [optimizers]
         factor = self.lr_decay_multiplier
         learning_rate = self.lr_schedule(self._current_progress_remaining) * factor
         latent_learning_rate = self.latent_learning_rate * factor
         self.logger.record("train/learning_rate", learning_rate)
         self.logger.record("train/latent_learning_rate", latent_learning_rate)
-        for optimizer in optimizers:
-            update_learning_rate(optimizer, learning_rate)
-        update_learning_rate(self.policy.latent_optimizer, latent_learning_rate)
-
-    def _latent_autocast(self) -> contextlib.AbstractContextManager:
-        """bfloat16 autocast for the latent model's passes when bfloat16 is on (``bf16``), else nothing."""
-        if self._bf16_active:
-            return th.autocast(self.device.type, dtype=th.bfloat16)
-        return contextlib.nullcontext()
-
-    def _begin_burst(self) -> None:
-        """
-        Bring the device copies of the step sizes and the multiplier up to date and clear the NaN notes: the update reads
-        no Python value that changes during training, so a compiled update never recompiles for one.
-        """
-        for optimizer, learning_rate in self._learning_rates.items():
-            learning_rate.fill_(optimizer.param_groups[0]["lr"])
-            if self._compiled_steps:
-                init_adam_state(optimizer)
-        self._lagrange_raw_device.copy_(self.lagrange_raw)
-        self._lagrange_learning_rate_device.fill_(self.current_lagrange_learning_rate)
-        self._first_nonfinite_update.fill_(-1)
-        self._burst_update_index.zero_()
-
-    def _end_burst(self, history: dict[str, list[th.Tensor]]) -> dict[str, float]:
-        """
-        The one host read of a burst: the mean of each logged statistic (the smallest of a ``*_min`` one, the largest of
-        a ``*_max`` one), the NaN notes and, for the "critic" rule, the multiplier. Raises if a loss became NaN or inf.
-        """
-        means = [_reduce_burst(name, th.stack(values).float()) for name, values in history.items()]
-        packed = th.cat([th.stack(means), self._first_nonfinite_update.float(), self._lagrange_raw_device.view(1).float()])
-        values = packed.cpu().numpy().astype(np.float64)
-        n_stats = len(means)
-        self._raise_if_not_finite(values[n_stats : n_stats + len(self._GUARDED_LOSSES)])
-        if self.lagrange == "critic":
-            self.lagrange_raw.fill_(values[-1])
-        return dict(zip(history, values[:n_stats].tolist(), strict=True))
-
-    def _pretrain_latent(self) -> None:
-        """
-        The one-off latent-model pre-training of Algorithm 1 (W_t updates on the random-policy data), after fixing the
-        standardisation of vector observations from that data.
-        """
-        self.policy.set_observation_statistics(self.replay_buffer.stored_observations())
-        losses: list[th.Tensor] = []
-        progress = tqdm(total=self.latent_pretrain_steps, desc="latent pre-training", disable=self.verbose < 1)
-        for done in range(0, self.latent_pretrain_steps, self._PRETRAIN_BURST):
-            n_updates = min(self._PRETRAIN_BURST, self.latent_pretrain_steps - done)
-            indices = self.replay_buffer.sample_indices(n_updates, self.latent_batch_size)
-            self._begin_burst()
-            history = defaultdict(list)
-            for k in range(n_updates):
-                stats, _ = self._latent_update(self.replay_buffer.gather(indices[k]))
-                self._record_finite(stats)
-                history["latent_loss"].append(stats["latent_loss"])
-                self._burst_update_index.add_(1)
-            losses = [*losses, *history["latent_loss"]][-100:]
-            self._end_burst(history)
-            progress.update(n_updates)
-        progress.close()
-        self.latent_pretrained = True
-        if losses:
-            self.logger.record("train/pretrain_latent_loss", float(th.stack(losses[-100:]).mean()))
-
-    def _latent_update(
-        self, batch: SequenceBatch, features: th.Tensor | None = None, filter_batch: SequenceBatch | None = None
-    ) -> tuple[dict[str, th.Tensor], th.Tensor | None]:
-        """
-        One latent-model update on a batch of sequences (``features``: their encoder features, if already computed).
-
-        :param filter_batch: other sequences to filter, without gradient, in the same rollout (before the update)
-        :return: the update's detached losses, and the posterior samples of ``filter_batch`` (B', L+1, z_dim) or None
-        """
-        with self._latent_autocast():
-            observations = self.policy.preprocess(batch.observations)
-            other = None
-            if filter_batch is not None:
-                other = (self.policy.preprocess(filter_batch.observations), filter_batch.actions)
-            loss, parts, latents = self.policy.latent.loss_and_filter(
-                observations, batch.actions, batch.rewards, batch.costs, batch.terminated, features=features, other=other
-            )
-        self._step(self.policy.latent_optimizer, loss, self.max_grad_norm)
-        return {"latent_loss": loss.detach(), **parts}, latents
-
-    def _step(
-        self,
-        optimizer: th.optim.Optimizer,
-        loss: th.Tensor,
-        max_grad_norm: float,
-        clip_groups: tuple[slice, ...] = (slice(None),),
-    ) -> None:
-        """
-        Gradients of ``loss`` for the optimizer's parameters only, each group of them (``clip_groups``: slices of the
-        optimizer's parameter list) clipped to ``max_grad_norm`` on its own, then an Adam step.
-        """
-        params = optimizer.param_groups[0]["params"]
-        grads = list(th.autograd.grad(loss, params, materialize_grads=True))
-        for group in clip_groups:
-            grads[group] = clip_grads(grads[group], max_grad_norm)
-        adam_step(optimizer, grads, self._learning_rates[optimizer])
-
-    def _gradient_step(self, batch: SequenceBatch, waiting: SequenceBatch | None) -> dict[str, th.Tensor]:
-        """
-        One gradient step of Algorithm 1, on the device and free of host syncs: a latent-model update, then an
-        actor-critic update (``compile_updates`` compiles this whole method).
-
-        As in the reference code, the actor-critic batch is filtered by the latent model after the latent update of its
-        step. That filtering runs in the rollout of the next step's latent update, one rollout over both batches: each
-        step updates the actor and critics on the previous step's batch (``waiting``) and leaves its own for the next
-        step, or for ``_last_actor_critic_step`` at the end of the burst. The latent model and the actor-critic share no
-        parameter, so this order computes the same updates with one rollout and first-frame pass fewer per step (the
-        waiting batch is still encoded on its own, without gradient).
-
-        :param batch: the sampled windows: ``latent_batch_size + batch_size`` of them (two independent batches, the
-            actor-critic one waits), or ``max(latent_batch_size, batch_size)`` with ``share_latent_batch``
-        :param waiting: the previous step's actor-critic batch, None in a burst's first step or with ``share_latent_batch``
-        :return: the detached statistics of the step
-        """
-        latent = self.policy.latent
-        n_latent, batch_size = self.latent_batch_size, self.batch_size
-        latent_batch = SequenceBatch(*(field[:n_latent] for field in batch))
-        if not self.share_latent_batch:
-            stats, latents = self._latent_update(latent_batch, filter_batch=waiting)
-            if waiting is not None:
-                stats.update(self._actor_critic_update(waiting, latents.float()))
-        else:
-            ac_batch = SequenceBatch(*(field[:batch_size] for field in batch))
-            with self._latent_autocast():
-                observations = self.policy.preprocess(batch.observations)
-                latent_features = latent.encode(observations[:n_latent])
-                with th.no_grad():
-                    features = latent_features.detach()
-                    if batch_size > n_latent:
-                        features = th.cat([features, latent.encode(observations[n_latent:batch_size])])
-                    latents = latent.latents_from_features(features[:batch_size], ac_batch.actions)
-            stats, _ = self._latent_update(latent_batch, features=latent_features)
-            stats.update(self._actor_critic_update(ac_batch, latents.float()))
-        self._record_finite(stats, pipelined=not self.share_latent_batch)
-        self._burst_update_index.add_(1)
-        return stats
-
-    def _last_actor_critic_step(self, batch: SequenceBatch) -> dict[str, th.Tensor]:
-        """
-        The actor-critic update on the actor-critic batch of a burst's last gradient step (see ``_gradient_step``),
-        filtered by the latent model as that step left it; its NaN notes name that step.
-        """
-        with th.no_grad(), self._latent_autocast():
-            latents = self.policy.latent.sample_latents(self.policy.preprocess(batch.observations), batch.actions)
-        stats = self._actor_critic_update(batch, latents.float())
-        self._record_finite(stats, pipelined=True)
-        return stats
-
-    @th.no_grad()
-    def _td_targets(
-        self, batch: SequenceBatch, latents: th.Tensor, ent_coef: th.Tensor, target_taus: th.Tensor
-    ) -> tuple[th.Tensor, th.Tensor]:
-        """
-        TD targets of both critics for the last transition of each sequence, ``z = latents[:, -2]`` to
-        ``z' = latents[:, -1]``, with ``a' ~ pi(z')`` from the current actor; terminations stop the bootstrap, time
-        limits (truncations) do not.
-
-        :param batch: the sequences (B, L+1 frames)
-        :param latents: their posterior samples (B, L+1, z_dim)
-        :param ent_coef: the entropy coefficient (scalar or (1,))
-        :param target_taus: the target quantile fractions (B, N')
-        :return: ``r + gamma * (1 - terminated) * (min(Q1', Q2')(z', a') - alpha * log pi(a' | z'))`` (B, 1) and
-            ``c + gamma_c * (1 - terminated) * Z'_tau'(z', a')`` (B, N')
-        """
-        policy = self.policy
-        next_z = latents[:, -1]
-        not_terminated = 1.0 - batch.terminated[:, -1:]
-        next_actions, next_log_prob = policy.actor.action_log_prob(next_z)
-        next_q = policy.critic_target(next_z, next_actions).amin(dim=0) - ent_coef * next_log_prob.unsqueeze(-1)
-        target_q = batch.rewards[:, -1:] + not_terminated * self.gamma * next_q
-        next_quantiles = policy.cost_critic_target(next_z, next_actions, target_taus)
-        target_quantiles = batch.costs[:, -1:] + not_terminated * self.cost_gamma * next_quantiles
-        return target_q, target_quantiles
-
-    def _actor_critic_update(self, batch: SequenceBatch, latents: th.Tensor) -> dict[str, th.Tensor]:
-        """
-        One update of the reward critic, the cost critic, the actor and the entropy coefficient on the last transition
-        of each sequence, then of the target critics.
-
-        :param batch: the sequences (B, L+1 frames)
-        :param latents: their posterior samples (B, L+1, z_dim), no gradient
-        """
-        policy = self.policy
-        n = batch.actions.shape[0]
-        z = latents[:, -2]
-        actions = batch.actions[:, -1]
-        ent_coef = th.exp(self.log_ent_coef.detach()) if self.ent_coef_optimizer is not None else self.ent_coef_tensor
-        multiplier = F.softplus(self._lagrange_raw_device)
-
-        target_taus = sample_taus(n, self.n_quantiles, self.device)
-        target_q, target_quantiles = self._td_targets(batch, latents, ent_coef, target_taus)  # under no_grad
-
-        q_values = policy.critic(z, actions)  # (2, B, 1)
-        critic_loss = (q_values - target_q).pow(2).mean(dim=(1, 2)).sum()  # MSE of each network, summed
-        self._step(policy.critic_optimizer, critic_loss, self.max_grad_norm)
-
-        taus = sample_taus(n, self.n_quantiles, self.device)
-        current_quantiles = policy.cost_critic(z, actions, taus)
-        if self.cost_critic == "mean":
-            cost_critic_loss = F.mse_loss(current_quantiles[:, :1], target_quantiles[:, :1])
-        else:
-            cost_critic_loss = quantile_huber_loss(current_quantiles, target_quantiles, cum_prob=taus.unsqueeze(-1))
-        self._step(policy.cost_critic_optimizer, cost_critic_loss, self.max_grad_norm, self._cost_critic_clip_groups)
-
-        # The actor's gradients are taken for its own parameters only: the critics' weights get none
-        pi_actions, log_prob = policy.actor.action_log_prob(z)
-        q_pi = policy.critic(z, pi_actions).amin(dim=0)
-        actor_taus = sample_taus(n, self.n_quantiles, self.device, risk_level=self.cvar_risk_level)
-        cost_value = policy.cost_critic(z, pi_actions, actor_taus).mean(dim=1, keepdim=True)
-        actor_loss = (ent_coef * log_prob.unsqueeze(-1) - q_pi + multiplier * cost_value).mean()
-        self._step(policy.actor_optimizer, actor_loss, self.actor_max_grad_norm)
-
-        stats = {
-            "critic_loss": critic_loss.detach(),
-            "cost_critic_loss": cost_critic_loss.detach(),
-            "actor_loss": actor_loss.detach(),
-            "cost_cvar": cost_value.detach().mean(),
-            "ent_coef": ent_coef.detach().reshape(()),
-        }
-        if self.cvar_risk_level < 1.0:
-            with th.no_grad():
-                neutral_taus = sample_taus(n, self.n_quantiles, self.device)
-                stats["cost_value"] = policy.cost_critic(z, pi_actions.detach(), neutral_taus).mean()
-        else:
-            stats["cost_value"] = stats["cost_cvar"]
-        if self.lagrange == "critic":
-            with th.no_grad():
-                raw = sgd_lagrange_step_on_device(
-                    self._lagrange_raw_device, stats["cost_cvar"], self.critic_cost_budget, self._lagrange_learning_rate_device
-                )
-                self._lagrange_raw_device.copy_(raw)
-        if self.ent_coef_optimizer is not None:
-            ent_coef_loss = -(self.log_ent_coef * (log_prob.detach() + self.target_entropy)).mean()
-            self._step(self.ent_coef_optimizer, ent_coef_loss, self.max_grad_norm)
-            stats["ent_coef_loss"] = ent_coef_loss.detach()
-
-        self._update_targets()
-        return stats
-
-    def _update_targets(self) -> None:
-        """Polyak update of both target critics, ``target += tau * (source - target)``, in one fused call."""
-        with th.no_grad():
-            th._foreach_lerp_(self._target_params, self._source_params, self.tau)
+        rates = {self.policy.latent_optimizer: latent_learning_rate}
+        for optimizer in optimizers if isinstance(optimizers, list) else [optimizers]:
+            update_learning_rate(optimizer, rates.get(optimizer, learning_rate))
 
     def train(self, gradient_steps: int, batch_size: int) -> None:
         """
@@ -921,77 +481,39 @@ class DSSLAC(OffPolicyAlgorithm):
         host read for the whole burst. The first call runs the latent pre-training once.
         """
         self.policy.set_training_mode(True)
-        optimizers = [self.policy.actor_optimizer, self.policy.critic_optimizer, self.policy.cost_critic_optimizer]
-        if self.ent_coef_optimizer is not None:
-            optimizers.append(self.ent_coef_optimizer)
-        self._update_learning_rate(optimizers)
-
+        self._update_learning_rate(self.updates.step.optimizers)
         if not self.latent_pretrained:
             with self.time_account.measure("latent_pretraining"):
                 self._pretrain_latent()
-
         with self.time_account.measure("updates"):
-            self._train_burst(gradient_steps, batch_size)
+            means = self.updates.train(
+                self.replay_buffer,
+                gradient_steps,
+                batch_size,
+                self.current_lagrange_learning_rate,
+                self._n_updates,
+                self.num_timesteps,
+            )
+            self._n_updates += gradient_steps
+            self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+            self.logger.record("train/lagrange_multiplier", self.lagrange_multiplier)
+            for key, value in means.items():
+                self.logger.record(f"train/{key}", value)
 
-    def _train_burst(self, gradient_steps: int, batch_size: int) -> None:
-        """One burst of ``gradient_steps`` updates on freshly sampled windows, and its logs."""
-        if self.share_latent_batch:
-            windows_per_update = max(self.latent_batch_size, batch_size)
-        else:
-            windows_per_update = self.latent_batch_size + batch_size
-        indices = self.replay_buffer.sample_indices(gradient_steps, windows_per_update)
-        means = self._end_burst(self._burst(indices))
-        self._n_updates += gradient_steps
-
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/lagrange_multiplier", self.lagrange_multiplier)
-        for key, value in means.items():
-            self.logger.record(f"train/{key}", value)
-
-    def _burst(self, indices: th.Tensor) -> dict[str, list[th.Tensor]]:
-        """
-        The gradient steps on the windows ``indices[k]`` (from ``sample_indices``), each actor-critic batch updated on in
-        the step after its own (``_gradient_step``) and the last one after them; their statistics by name, in order.
-        """
-        self._begin_burst()
-        history: dict[str, list[th.Tensor]] = defaultdict(list)
-        waiting = None
-        for k in range(indices.shape[0]):
-            batch = self.replay_buffer.gather(indices[k])
-            for key, value in self._run_step(self._gradient_step, batch, waiting).items():
-                history[key].append(value)
-            if not self.share_latent_batch:
-                waiting = SequenceBatch(*(field[self.latent_batch_size :] for field in batch))
-        if waiting is not None:
-            for key, value in self._run_step(self._last_actor_critic_step, waiting).items():
-                history[key].append(value)
-        return history
-
-    def _run_step(self, step: Callable[..., dict[str, th.Tensor]], *args: Any) -> dict[str, th.Tensor]:
-        """
-        ``step(*args)`` (``_gradient_step`` or ``_last_actor_critic_step``), compiled with ``compile_updates`` (falling
-        back to eager, with a warning, if that fails).
-        """
-        compiled = self._compiled_steps.get(step.__name__)
-        if compiled is None:
-            return step(*args)
-        # The first call compiles (a minute or more on a CPU): its time is the compilation's
-        first_call = self.time_account.measure("compilation") if step.__name__ not in self._compiled_once else None
-        try:
-            with th._dynamo.config.patch(trace_autograd_ops=True), first_call or contextlib.nullcontext():
-                if self.device.type != "cuda":
-                    return compiled(*args)
-                # A CUDA graph's replay reuses its output memory: keep copies of this step's statistics
-                th.compiler.cudagraph_mark_step_begin()
-                return {key: value.clone() for key, value in compiled(*args).items()}
-        except Exception as error:  # the compiler's errors have no common base class
-            if step.__name__ in self._compiled_once:
-                raise
-            warnings.warn(f"compile_updates: the update could not be compiled ({type(error).__name__}: {error}); runs eagerly")
-            self._compiled_steps = {}
-            return step(*args)
-        finally:
-            self._compiled_once.add(step.__name__)
+    def _pretrain_latent(self) -> None:
+        """The one-off latent pre-training of Algorithm 1 (W_t updates), after standardising vectors by the warm-up data."""
+        self.policy.set_observation_statistics(self.replay_buffer.stored_observations())
+        loss = self.updates.pretrain_latent(
+            self.replay_buffer,
+            self.latent_pretrain_steps,
+            self.current_lagrange_learning_rate,
+            self._n_updates,
+            self.num_timesteps,
+            progress_bar=self.verbose >= 1,
+        )
+        self.latent_pretrained = True
+        if loss is not None:
+            self.logger.record("train/pretrain_latent_loss", loss)
 
     def learn(
         self: SelfDSSLAC,
@@ -1013,40 +535,10 @@ class DSSLAC(OffPolicyAlgorithm):
                 progress_bar=progress_bar,
             )
 
-    # ----------------------------------------------------------------------------------------------------------------
-    # Save / load
-    # ----------------------------------------------------------------------------------------------------------------
-
     def _excluded_save_params(self) -> list[str]:
-        return [
-            *super()._excluded_save_params(),
-            "_last_filter_state",
-            "_episode_costs",
-            "ep_cost_buffer",
-            # rebuilt by _setup_model
-            "_bf16_active",
-            "_learning_rates",
-            "_lagrange_raw_device",
-            "_lagrange_learning_rate_device",
-            "_first_nonfinite_update",
-            "_burst_update_index",
-            "_pipelined_lags",
-            "_target_params",
-            "_source_params",
-            "_cost_critic_clip_groups",
-            "_compiled_steps",
-            "_compiled_once",
-        ]
+        # The training envs' rollout state, and the update engine that _setup_model rebuilds
+        return [*super()._excluded_save_params(), "_last_filter_state", "_episode_costs", "ep_cost_buffer", "updates"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        state_dicts = [
-            "policy",
-            "policy.latent_optimizer",
-            "policy.actor_optimizer",
-            "policy.critic_optimizer",
-            "policy.cost_critic_optimizer",
-        ]
-        if self.ent_coef_optimizer is not None:
-            state_dicts.append("ent_coef_optimizer")
-            return state_dicts, ["log_ent_coef", "lagrange_raw"]
-        return state_dicts, ["ent_coef_tensor", "lagrange_raw"]
+        ent_coef = "log_ent_coef" if self.ent_coef_optimizer is not None else "ent_coef_tensor"
+        return ["policy", *self._optimizer_names()], [ent_coef, "lagrange_raw"]

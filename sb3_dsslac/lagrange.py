@@ -1,11 +1,12 @@
-"""The Lagrange multiplier of the cost constraint and the callback that updates it on-policy."""
+"""The Lagrange multiplier of the cost constraint, its budgets, and the callback that updates it on-policy."""
 
 import math
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.type_aliases import MaybeCallback
 from torch.nn import functional as F
-from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_dsslac.env_info import cost_from_info
 
@@ -137,3 +138,85 @@ class LagrangeCallback(BaseCallback):
         with th.no_grad():
             model.lagrange_raw.fill_(raw)
         return True
+
+
+def _has_lagrange_callback(callback: MaybeCallback) -> bool:
+    if isinstance(callback, LagrangeCallback):
+        return True
+    if isinstance(callback, CallbackList):
+        return any(_has_lagrange_callback(child) for child in callback.callbacks)
+    if isinstance(callback, list):
+        return any(_has_lagrange_callback(child) for child in callback)
+    return False
+
+
+def with_lagrange_callback(callback: MaybeCallback) -> MaybeCallback:
+    """``callback`` with a ``LagrangeCallback`` in front, unless it holds one (also inside a list or a ``CallbackList``)."""
+    if _has_lagrange_callback(callback):
+        return callback
+    if callback is None:
+        return [LagrangeCallback()]
+    if isinstance(callback, list):
+        return [LagrangeCallback(), *callback]
+    return [LagrangeCallback(), callback]
+
+
+class CostBudget:
+    """
+    The cost budget in the units of each multiplier rule, the multiplier and its step size now: properties of
+    ``DSSLAC``, which mixes this class in, from its hyperparameters of the same names.
+    """
+
+    cost_limit: float
+    cost_target: float | None
+    episode_length: int | None
+    cost_gamma: float
+    lagrange_learning_rate: float
+    lagrange_raw: th.Tensor
+    lr_decay_milestone: int | None
+    lr_decay_factor: float
+    num_timesteps: int
+
+    @property
+    def episode_cost_target(self) -> float:
+        """The episode cost the multiplier aims at: ``cost_target``, else ``cost_limit``."""
+        return self.cost_limit if self.cost_target is None else self.cost_target
+
+    @property
+    def cost_budget_per_step(self) -> float:
+        """The multiplier's episode target spread over the agent steps of an episode (25 / 500 = 0.05 for the thesis)."""
+        assert self.episode_length is not None
+        return self.episode_cost_target / self.episode_length
+
+    @property
+    def discounted_cost_budget(self) -> float:
+        """The per-step budget discounted over an episode with ``cost_gamma``: 9.184 for the thesis setting."""
+        assert self.episode_length is not None
+        return self.cost_budget_per_step * (1.0 - self.cost_gamma**self.episode_length) / (1.0 - self.cost_gamma)
+
+    @property
+    def critic_cost_budget(self) -> float:
+        """
+        The budget of the "critic" rule: ``cost_budget_per_step / (1 - cost_gamma)``, 10.0 for the thesis setting, the
+        value the critic's (infinite-horizon, time-limit-bootstrapped) estimate converges to at exactly the per-step
+        budget. Against ``discounted_cost_budget`` (9.184, discounting stopped at the episode end) the rule would hold
+        the episode cost to about 23 instead of 25.
+        """
+        return self.cost_budget_per_step / (1.0 - self.cost_gamma)
+
+    @property
+    def lagrange_multiplier(self) -> float:
+        """The current Lagrange multiplier (softplus of its raw parameter)."""
+        return softplus(float(self.lagrange_raw.numpy()))
+
+    @property
+    def lr_decay_multiplier(self) -> float:
+        """The factor on every step size now: ``lr_decay_factor`` from agent step ``lr_decay_milestone`` on, else 1."""
+        if self.lr_decay_milestone is not None and self.num_timesteps >= self.lr_decay_milestone:
+            return self.lr_decay_factor
+        return 1.0
+
+    @property
+    def current_lagrange_learning_rate(self) -> float:
+        """The multiplier's SGD step size now: ``lagrange_learning_rate`` times ``lr_decay_multiplier``."""
+        return self.lagrange_learning_rate * self.lr_decay_multiplier

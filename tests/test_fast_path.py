@@ -10,7 +10,7 @@ import torch as th
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac import dsslac as dsslac_module
+from sb3_dsslac import numerics
 from sb3_dsslac.dispatch import DispatchCounter, optimizer_step_tensors
 from sb3_dsslac.latent import LatentModel
 from tests.synthetic_envs import HazardPointEnv
@@ -26,6 +26,11 @@ def image_batch(size: int, batch: int = 4, steps: int = 3, seed: int = 0) -> tup
     rewards = th.randn(batch, steps, generator=generator)
     costs = (th.rand(batch, steps, generator=generator) < 0.3).float()
     return images, actions, rewards, costs, th.zeros(batch, steps)
+
+
+def burst(model: DSSLAC, indices: th.Tensor) -> dict[str, list[th.Tensor]]:
+    """The statistics of one burst of ``model``'s gradient steps on the windows ``indices[k]`` of its buffer."""
+    return model.updates.burst(model.replay_buffer, indices, model.current_lagrange_learning_rate)
 
 
 def seeded_loss(model: LatentModel, batch: tuple[th.Tensor, ...], **kwargs) -> tuple[th.Tensor, dict[str, th.Tensor]]:
@@ -67,7 +72,8 @@ def test_each_actor_critic_batch_is_filtered_after_its_own_latent_update(monkeyp
     model.learn(60)
     model.latent_pretrained = True
     latent_states, filtered = [], []
-    latent_update, actor_critic_update = model._latent_update, model._actor_critic_update
+    step = model.updates.step
+    latent_update, actor_critic_update = step.latent_update, step.actor_critic_update
 
     def recording_latent_update(*args, **kwargs):
         result = latent_update(*args, **kwargs)
@@ -78,11 +84,11 @@ def test_each_actor_critic_batch_is_filtered_after_its_own_latent_update(monkeyp
         filtered.append((batch, latents))
         return actor_critic_update(batch, latents)
 
-    monkeypatch.setattr(model, "_latent_update", recording_latent_update)
-    monkeypatch.setattr(model, "_actor_critic_update", recording_actor_critic_update)
+    monkeypatch.setattr(step, "latent_update", recording_latent_update)
+    monkeypatch.setattr(step, "actor_critic_update", recording_actor_critic_update)
     monkeypatch.setattr(th, "randn", lambda *shape, **kwargs: th.zeros(*shape, **kwargs))  # the rollouts' means
     indices = model.replay_buffer.sample_indices(3, model.latent_batch_size + model.batch_size)
-    model._burst(indices)
+    burst(model, indices)
     assert len(latent_states) == len(filtered) == 3
     for k, (batch, latents) in enumerate(filtered):
         expected_batch = model.replay_buffer.gather(indices[k])
@@ -143,7 +149,7 @@ def warmed_up_pair(**fast: object) -> tuple[DSSLAC, DSSLAC]:
 def seeded_updates(model: DSSLAC, indices: th.Tensor) -> dict[str, list[th.Tensor]]:
     """The statistics of one burst of gradient steps on the windows ``indices[k]``, from the same random seed."""
     th.manual_seed(11)
-    return model._burst(indices)
+    return burst(model, indices)
 
 
 LATENT_STATISTICS = {
@@ -168,7 +174,7 @@ def test_compiled_update_matches_eager() -> None:
     with warnings.catch_warnings():
         warnings.filterwarnings("error", message="compile_updates")  # no silent fallback to eager
         compiled_stats = seeded_updates(compiled, indices[:2])
-    assert set(compiled._compiled_steps) == {"_gradient_step", "_last_actor_critic_step"}
+    assert set(compiled.updates.compiled_steps) == {"full_step", "last_actor_critic_step"}
     eager_stats = seeded_updates(eager, indices[:2])
     assert eager_stats.keys() == compiled_stats.keys()
     for key, values in eager_stats.items():
@@ -184,9 +190,9 @@ def test_compiled_update_matches_eager() -> None:
     batch, waiting = (compiled.replay_buffer.gather(indices[k]) for k in (2, 0))
     waiting = type(waiting)(*(field[compiled.latent_batch_size :] for field in waiting))
     with DispatchCounter() as compiled_counter:
-        compiled._run_step(compiled._gradient_step, batch, waiting)
+        compiled.updates.run_step(compiled.updates.step.full_step, batch, waiting)
     with DispatchCounter() as eager_counter:
-        eager._run_step(eager._gradient_step, batch, waiting)
+        eager.updates.run_step(eager.updates.step.full_step, batch, waiting)
     assert compiled_counter.ops < eager_counter.ops / 4 and compiled_counter.syncs == 0
 
 
@@ -201,11 +207,11 @@ def test_compile_failure_falls_back_to_eager_with_a_warning(monkeypatch) -> None
     model = small_model(HazardPointEnv(), compile_updates=True)
     with pytest.warns(UserWarning, match="could not be compiled.*no compiler here"):
         model.learn(60)
-    assert model._compiled_steps == {} and model._n_updates > 0
+    assert model.updates.compiled_steps == {} and model._n_updates > 0
 
 
 def test_bf16_update_losses_are_within_one_percent_of_fp32(monkeypatch) -> None:
-    monkeypatch.setattr(dsslac_module, "has_native_bf16", lambda device: True)  # emulated bfloat16 computes the same
+    monkeypatch.setattr(numerics, "has_native_bf16", lambda device: True)  # emulated bfloat16 computes the same
     fp32, bf16 = warmed_up_pair(bf16=True)
     indices = fp32.replay_buffer.sample_indices(1, fp32.latent_batch_size + fp32.batch_size)
     reference, stats = seeded_updates(fp32, indices), seeded_updates(bf16, indices)
@@ -286,13 +292,13 @@ def test_train_freq_not_a_multiple_of_n_envs_warns() -> None:
 
 
 def test_bf16_without_native_support_warns_and_keeps_float32(monkeypatch) -> None:
-    monkeypatch.setattr(dsslac_module, "has_native_bf16", lambda device: False)
+    monkeypatch.setattr(numerics, "has_native_bf16", lambda device: False)
     with pytest.warns(UserWarning, match="no native bfloat16"):
         model = small_model(HazardPointEnv(), bf16=True)
-    assert not model._bf16_active
-    assert not small_model(HazardPointEnv(), bf16="auto")._bf16_active
-    monkeypatch.setattr(dsslac_module, "has_native_bf16", lambda device: True)
-    assert small_model(HazardPointEnv(), bf16="auto")._bf16_active
+    assert not model.updates.step.bf16
+    assert not small_model(HazardPointEnv(), bf16="auto").updates.step.bf16
+    monkeypatch.setattr(numerics, "has_native_bf16", lambda device: True)
+    assert small_model(HazardPointEnv(), bf16="auto").updates.step.bf16
     with pytest.raises(ValueError, match="bf16"):
         small_model(HazardPointEnv(), bf16="yes")
 

@@ -8,7 +8,8 @@ from torch import nn
 from torch.distributions import Normal, kl_divergence
 
 import sb3_dsslac.dsslac as dsslac_module
-from sb3_dsslac import DSSLAC, LatentPolicy, lagrange
+import sb3_dsslac.gradient_step as gradient_step_module
+from sb3_dsslac import DSSLAC, LatentPolicy, lagrange, numerics
 from sb3_dsslac.buffers import SequenceBatch
 from sb3_dsslac.latent import LatentModel, LatentRollout
 from sb3_dsslac.optim import adam_step
@@ -83,7 +84,7 @@ def test_multiplier_steps_with_the_decayed_step_size(rule: str, monkeypatch) -> 
         return lagrange.sgd_lagrange_step_on_device(raw, cost, budget, learning_rate)
 
     monkeypatch.setattr("sb3_dsslac.lagrange.sgd_lagrange_step", spy)
-    monkeypatch.setattr("sb3_dsslac.dsslac.sgd_lagrange_step_on_device", device_spy)  # the "critic" rule
+    monkeypatch.setattr("sb3_dsslac.gradient_step.sgd_lagrange_step_on_device", device_spy)  # the "critic" rule
     model = small_model(HazardPointEnv(), lagrange=rule, lr_decay_milestone=50, lr_decay_factor=0.25)
     model.learn(80)
     assert rates and set(rates) <= {2e-4, 0.25 * 2e-4}
@@ -259,7 +260,7 @@ def test_td_targets_on_a_hand_built_batch(monkeypatch) -> None:
     ent_coef = th.tensor([0.2])
     taus = th.rand(batch_size, 5)
 
-    target_q, target_quantiles = model._td_targets(batch, latents, ent_coef, taus)
+    target_q, target_quantiles = model.updates.step.td_targets(batch, latents, ent_coef, taus)
 
     assert target_q.shape == (batch_size, 1) and target_quantiles.shape == (batch_size, 5)
     next_z0 = latents[:, -1, 0:1]
@@ -278,7 +279,7 @@ def test_the_update_uses_z_at_index_minus_2() -> None:
     model.policy.critic.register_forward_pre_hook(lambda module, args: seen.append(args[0].detach().clone()))
     latents = th.randn(8, SMALL["sequence_length"] + 1, model.policy.latent.z_dim)
     batch = model.replay_buffer.gather(model.replay_buffer.sample_indices(1, 8)[0])
-    model._actor_critic_update(batch, latents)
+    model.updates.step.actor_critic_update(batch, latents)
     th.testing.assert_close(seen[0], latents[:, -2])
 
 
@@ -317,15 +318,14 @@ def test_cvar_taus_reach_only_the_actor(monkeypatch) -> None:
     model = small_model(HazardPointEnv(), cvar_risk_level=0.2)
     model.learn(45)
     loss_taus, target_taus, critic_taus = [], [], []
-    original_loss, original_targets = dsslac_module.quantile_huber_loss, model._td_targets
+    step = model.updates.step
+    original_loss, original_targets = gradient_step_module.quantile_huber_loss, step.td_targets
     monkeypatch.setattr(
-        dsslac_module,
+        gradient_step_module,
         "quantile_huber_loss",
         lambda c, t, cum_prob: loss_taus.append(cum_prob.squeeze(-1)) or original_loss(c, t, cum_prob=cum_prob),
     )
-    monkeypatch.setattr(
-        model, "_td_targets", lambda b, z, e, taus: target_taus.append(taus) or original_targets(b, z, e, taus)
-    )
+    monkeypatch.setattr(step, "td_targets", lambda b, z, e, taus: target_taus.append(taus) or original_targets(b, z, e, taus))
     model.policy.cost_critic.register_forward_pre_hook(lambda module, args: critic_taus.append(args[2].detach()))
     model.train(gradient_steps=2, batch_size=8)
 
@@ -352,11 +352,11 @@ def test_the_actor_loss_leaves_the_critics_alone(monkeypatch) -> None:
             snapshots[names[optimizer]] = [p.grad.clone() for p in critics]
 
     # The critics' gradients when their own steps are taken, and again when the actor steps
-    monkeypatch.setattr(dsslac_module, "adam_step", spying_adam_step)
+    monkeypatch.setattr(gradient_step_module, "adam_step", spying_adam_step)
     actor_before = [p.detach().clone() for p in policy.actor.parameters()]
     batch = model.replay_buffer.gather(model.replay_buffer.sample_indices(1, 8)[0])
     latents = th.randn(8, SMALL["sequence_length"] + 1, policy.latent.z_dim)
-    model._actor_critic_update(batch, latents)
+    model.updates.step.actor_critic_update(batch, latents)
 
     policy.critic_optimizer.zero_grad(set_to_none=False)  # the reward critic's grads came before the snapshot
     for before, at_actor_step in zip(snapshots["critic_grads"], snapshots["grads_at_actor_step"], strict=True):
@@ -375,8 +375,9 @@ def clipped_cost_critic_grads(model: DSSLAC, scale_of, monkeypatch) -> list[th.T
     params = optimizer.param_groups[0]["params"]
     loss = sum(param.sum() * scale_of(index) for index, param in enumerate(params))
     seen: list[list[th.Tensor]] = []
-    monkeypatch.setattr(dsslac_module, "adam_step", lambda optimizer, grads, learning_rate: seen.append(grads))
-    model._step(optimizer, loss, model.max_grad_norm, model._cost_critic_clip_groups)
+    monkeypatch.setattr(gradient_step_module, "adam_step", lambda optimizer, grads, learning_rate: seen.append(grads))
+    step = model.updates.step
+    step.optimizer_step(optimizer, loss, model.max_grad_norm, step.cost_critic_clip_groups)
     return seen[0]
 
 
@@ -399,13 +400,13 @@ def test_tf32_scope_restores_the_process_settings() -> None:
     before = tuple(flag.allow_tf32 for flag in flags)
     th.backends.cuda.matmul.allow_tf32 = False
     try:
-        with dsslac_module.tf32_matmul(True):
+        with numerics.tf32_matmul(True):
             assert th.backends.cuda.matmul.allow_tf32 and th.backends.cudnn.allow_tf32
         assert not th.backends.cuda.matmul.allow_tf32
-        with pytest.raises(KeyError), dsslac_module.tf32_matmul(True):
+        with pytest.raises(KeyError), numerics.tf32_matmul(True):
             raise KeyError
         assert not th.backends.cuda.matmul.allow_tf32
-        with dsslac_module.tf32_matmul(False):
+        with numerics.tf32_matmul(False):
             assert not th.backends.cuda.matmul.allow_tf32
     finally:
         th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32 = before
@@ -432,9 +433,9 @@ def test_critic_rule_budget_is_the_infinite_horizon_value(monkeypatch) -> None:
     assert model.critic_cost_budget == pytest.approx(10.0)
     assert model.discounted_cost_budget == pytest.approx(9.184, abs=1e-3)  # still the mean critic's initial bias
     budgets = []
-    original = dsslac_module.sgd_lagrange_step_on_device
+    original = gradient_step_module.sgd_lagrange_step_on_device
     monkeypatch.setattr(
-        dsslac_module, "sgd_lagrange_step_on_device", lambda r, c, b, lr: budgets.append(b) or original(r, c, b, lr)
+        gradient_step_module, "sgd_lagrange_step_on_device", lambda r, c, b, lr: budgets.append(b) or original(r, c, b, lr)
     )
     model.learn(50)
     assert budgets and budgets == pytest.approx([10.0] * len(budgets))

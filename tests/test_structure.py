@@ -1,9 +1,16 @@
-"""One-way module structure: the command line sits on top, nothing imports it, and the package's imports have no circle."""
+"""
+One-way module structure: the command line sits on top, nothing imports it, the algorithm's update engine sits below
+the algorithm, the networks need no Stable-Baselines3, and the package's imports have no circle.
+"""
 
 import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+# Plain torch modules, usable without Stable-Baselines3
+NETWORKS = ("latent", "critics", "actor", "fused_rollout", "convolutions")
+# What DSSLAC delegates its updates to: below it, never importing it back
+UPDATE_ENGINE = ("bursts", "gradient_step", "numerics", "lagrange", "optim")
 
 
 def module_name(path: Path) -> str:
@@ -70,3 +77,30 @@ def test_no_import_circle() -> None:
 
     for module in sorted(edges):
         visit(module, [])
+
+
+def reachable(graph: dict[str, set[str]], module: str) -> set[str]:
+    """Every module of the graph that ``module`` imports, directly or through others."""
+    found: set[str] = set()
+    stack = [module]
+    while stack:
+        for name in graph[stack.pop()]:
+            if name in graph and name not in found:
+                found.add(name)
+                stack.append(name)
+    return found
+
+
+def test_the_update_engine_sits_below_the_algorithm() -> None:
+    graph = package_graph("sb3_dsslac")
+    for name in UPDATE_ENGINE:
+        assert "sb3_dsslac.dsslac" not in reachable(graph, f"sb3_dsslac.{name}"), name
+
+
+def test_the_networks_need_no_stable_baselines() -> None:
+    graph = package_graph("sb3_dsslac")
+    networks = {f"sb3_dsslac.{name}" for name in NETWORKS}
+    for module in networks:
+        assert reachable(graph, module) <= networks, module
+        path = REPO / "sb3_dsslac" / f"{module.split('.')[-1]}.py"
+        assert not {name.split(".")[0] for name in imported_modules(path)} & {"stable_baselines3", "sb3_contrib"}, module
