@@ -208,7 +208,7 @@ def test_workers_released_together_on_a_new_storage_all_run(kind: str) -> None:
     """Four tune workers released by one barrier on a new storage: all exit 0 and the study holds their four trials."""
     if kind == "postgresql" and POSTGRES_URL is None:
         pytest.skip("no PostgreSQL server: set DSSLAC_TEST_POSTGRES_URL (.ci/postgres.sh)")
-    command = [sys.executable, "benchmarks/tune_start_race.py", "--rounds=1", "--workers=4", "--storages", kind]
+    command = [sys.executable, "tools/tune_start_race.py", "--rounds=1", "--workers=4", "--storages", kind]
     command += ["--env", TINY_ENV, "--timesteps=60", "--hyperparams", *RACE_TRIAL]
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=600, check=False)

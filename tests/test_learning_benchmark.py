@@ -95,7 +95,7 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     wall, cpu = (float(cell) for cell in row.strip("|").split("|")[-2:])
     assert 0 < cpu <= 2 * wall  # one torch thread: at most the process's own core plus its render and data threads
 
-    command = [sys.executable, "benchmarks/belief_probe.py", str(tmp_path / "runs" / "seed3"), "--windows", "100"]
+    command = [sys.executable, "benchmarks/diagnostics/belief_probe.py", str(tmp_path / "runs" / "seed3"), "--windows", "100"]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
     rows = {line.split("|")[1].strip(): line for line in result.stdout.splitlines() if line.startswith("| ")}
@@ -104,7 +104,7 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     assert "cost decoder on the windows' last transitions: costly share" in result.stdout
     assert "cost decoder on 5 fresh episodes (125 steps), online filter: costly share" in result.stdout
 
-    command = [sys.executable, "benchmarks/filter_memory.py", str(tmp_path / "runs" / "seed3"), "--env", TINY[1]]
+    command = [sys.executable, "benchmarks/diagnostics/filter_memory.py", str(tmp_path / "runs" / "seed3"), "--env", TINY[1]]
     command += ["--episodes", "2", "--windows", "1", "2"]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
@@ -115,8 +115,8 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
 
 def test_reconstruction_speed_probes_the_latent_model_at_each_checkpoint(tmp_path) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
-    command = [sys.executable, "benchmarks/reconstruction_speed.py", "--random-steps", "120", "--checkpoints", "2", "5"]
-    command += ["--episode-steps", "6", "--held-out-steps", "30", "--probe-windows", "100"]
+    command = [sys.executable, "benchmarks/diagnostics/reconstruction_speed.py", "--random-steps", "120"]
+    command += ["--checkpoints", "2", "5", "--episode-steps", "6", "--held-out-steps", "30", "--probe-windows", "100"]
     command += ["--hyperparams", "sequence_length=3", "--out", str(tmp_path)]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
@@ -129,7 +129,7 @@ def test_reconstruction_speed_probes_the_latent_model_at_each_checkpoint(tmp_pat
 
 
 def test_belief_probe_scores_a_linear_readout_near_one_and_noise_near_zero(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
     from belief_probe import frame_targets, ridge_r2
 
     rng = np.random.default_rng(0)
@@ -146,7 +146,7 @@ def test_belief_probe_scores_a_linear_readout_near_one_and_noise_near_zero(monke
 
 
 def test_belief_probe_cost_head_auc_ranks_costly_transitions_against_free_ones(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
     from belief_probe import cost_head_scores, roc_auc
 
     costly = np.array([False, False, True, True])
@@ -162,7 +162,7 @@ def test_belief_probe_cost_head_auc_ranks_costly_transitions_against_free_ones(m
 
 
 def test_hazard_visibility_counts_sightings_in_the_window_and_the_bottom_rows(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
     from hazard_visibility import hazard_in_view, seen_within
 
     assert seen_within(np.array([1, 0, 0, 0, 1, 0], dtype=bool), 1).tolist() == [1, 0, 0, 0, 1, 0]
@@ -176,7 +176,7 @@ def test_hazard_visibility_counts_sightings_in_the_window_and_the_bottom_rows(mo
 
 
 def test_filter_memory_windows_as_long_as_the_episode_give_the_online_belief(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
     from filter_memory import filtered_episode, mismatch_share, window_beliefs
 
     from tests.synthetic_envs import HazardPointEnv

@@ -9,13 +9,17 @@ the transitions that cost and on those that did not, and the ROC AUC between the
 then the same on fresh episodes of the agent's stochastic policy, filtered online as it acts (``--episodes``): the
 buffer's windows are what the model trained on, the fresh episodes are held out.
 
-    python benchmarks/belief_probe.py runs/<run>      # a run of `python -m sb3_dsslac train --obs-type pixels`
+    python benchmarks/diagnostics/belief_probe.py runs/<run>  # a run of `python -m sb3_dsslac train --obs-type pixels`
 
 The encoder feature sees only the frame; the belief adds the filter's memory but passes through the latent bottleneck.
 """
 
 import argparse
+import sys
 from pathlib import Path
+
+# The benchmarks' shared modules (machine.py) sit one folder up
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 import torch as th

@@ -3,8 +3,8 @@ Workers started at the same moment on a new Optuna storage: ``--workers`` proces
 has imported everything, each run ``python -m sb3_dsslac tune --n-trials 1`` on a new study of a new storage; every
 round checks that all exit 0 and that the study holds one finished trial per worker.
 
-    python benchmarks/tune_start_race.py                                    # 4 workers, 5 rounds on a new SQLite file
-    python benchmarks/tune_start_race.py --storages sqlite postgresql --postgres-url postgresql://u:p@127.0.0.1/db
+    python tools/tune_start_race.py                                     # 4 workers, 5 rounds on a new SQLite file
+    python tools/tune_start_race.py --storages sqlite postgresql --postgres-url postgresql://u:p@127.0.0.1/db
 
 On PostgreSQL each round gets a new schema of the database (``search_path``), so the workers race to create the tables
 as on a new database. The trials are tiny (``--preset cpu``, state observations, ``--timesteps`` simulator steps).
@@ -20,6 +20,9 @@ import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+# The benchmarks' shared modules (machine.py)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 from machine import cpu_model
 from multiprocessing.synchronize import Barrier

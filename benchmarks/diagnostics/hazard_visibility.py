@@ -8,14 +8,19 @@ nothing show how often such a sighting is harmless. No model is involved: it bou
 W frames could know about the hazard the robot stands on, as a detector "a hazard was seen" with a hit rate (costly
 steps) and a false-alarm rate (free steps).
 
-    python benchmarks/hazard_visibility.py                       # PointGoal1, 32x32 and 64x64, 20 episodes
-    python benchmarks/hazard_visibility.py --sizes 32 48 64 --windows 1 4 10 20 --episodes 40
-    python benchmarks/hazard_visibility.py --sizes 32 --action-repeat 4       # 4 frames then span 16 simulator steps
+    python benchmarks/diagnostics/hazard_visibility.py                               # PointGoal1, 32x32 and 64x64, 20 episodes
+    python benchmarks/diagnostics/hazard_visibility.py --sizes 32 48 64 --windows 1 4 10 20 --episodes 40
+    python benchmarks/diagnostics/hazard_visibility.py --sizes 32 --action-repeat 4  # 4 frames then span 16 simulator steps
 
 The latent filter's belief holds about the last 4 frames (``filter_memory.py``), the thesis's training window is 8+1.
 """
 
 import argparse
+import sys
+from pathlib import Path
+
+# The benchmarks' shared modules (machine.py) sit one folder up
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import gymnasium as gym
 import numpy as np

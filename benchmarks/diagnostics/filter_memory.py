@@ -7,13 +7,17 @@ as a share of the belief's variance (filter means on both sides, so that samplin
 already at a small k means that the belief is a function of the last k frames: what left the view earlier (the goal,
 once the robot turns away) is forgotten, and the window/online mismatch does not matter.
 
-    python benchmarks/filter_memory.py runs/<run>          # a run of `python -m sb3_dsslac train --obs-type pixels`
-    python benchmarks/filter_memory.py model.zip --episodes 10
+    python benchmarks/diagnostics/filter_memory.py runs/<run>  # a run of `python -m sb3_dsslac train --obs-type pixels`
+    python benchmarks/diagnostics/filter_memory.py model.zip --episodes 10
 """
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any, NamedTuple
+
+# The benchmarks' shared modules (machine.py) sit one folder up
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch as th
 from machine import cpu_model

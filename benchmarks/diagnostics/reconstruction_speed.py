@@ -8,16 +8,20 @@ measures how much of the goal the latent holds); the R^2 of linear readouts of t
 the belief and from the encoder feature (``belief_probe.py``, on the training windows); and a ``beliefs.png`` of the
 first episode at each checkpoint.
 
-    python benchmarks/reconstruction_speed.py                                  # cpu_pixels, 20k random steps
-    python benchmarks/reconstruction_speed.py --hyperparams image_noise=0.4    # the thesis's likelihood variance
+    python benchmarks/diagnostics/reconstruction_speed.py                                # cpu_pixels, 20k random steps
+    python benchmarks/diagnostics/reconstruction_speed.py --hyperparams image_noise=0.4  # the thesis's likelihood variance
 
 One torch thread; about 6 latent updates/s at the cpu_pixels sizes on a 2-core AMD EPYC shared with two other jobs.
 """
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
+
+# The benchmarks' shared modules (machine.py) sit one folder up
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 import torch as th

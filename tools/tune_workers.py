@@ -3,8 +3,8 @@ Seconds per trial of ``python -m sb3_dsslac tune`` with one worker alone and wit
 machine (default flags: one torch thread per worker), beside a control: a fixed single-threaded torch workload run
 alone and as as many copies at once, which shows how much running side by side costs on this machine whatever runs.
 
-    python benchmarks/tune_workers.py                 # 2 workers, a 2,000-step cpu-preset trial each
-    python benchmarks/tune_workers.py --workers 2 --timesteps 4000 --threads 2   # the old default of torch's threads
+    python tools/tune_workers.py                                           # 2 workers, a 2,000-step cpu-preset trial each
+    python tools/tune_workers.py --workers 2 --timesteps 4000 --threads 2  # the old default of torch's threads
 
 Every sampled keyword that changes a trial's cost is fixed (``--hyperparams``), so all trials do the same work.
 """
@@ -16,6 +16,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+# The benchmarks' shared modules (machine.py)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 from machine import cpu_model
 
