@@ -46,7 +46,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from torch.utils.hooks import RemovableHandle
 
 import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
-import sb3_dsslac.dsslac as dsslac_module
+import sb3_dsslac.gradient_step as gradient_step_module
 from sb3_dsslac import DSSLAC
 from sb3_dsslac.presets import preset_env_kwargs, preset_hyperparams
 
@@ -122,11 +122,11 @@ def update_seconds(model: DSSLAC, n_updates: int, rounds: int = 3) -> float:
 @contextlib.contextmanager
 def eager_updates(model: DSSLAC) -> Iterator[None]:
     """The uncompiled update inside the block, also with ``compile_updates`` (its compiled steps come back after)."""
-    compiled, model._compiled_steps = model._compiled_steps, {}
+    compiled, model.updates.compiled_steps = model.updates.compiled_steps, {}
     try:
         yield
     finally:
-        model._compiled_steps = compiled
+        model.updates.compiled_steps = compiled
 
 
 @contextlib.contextmanager
@@ -134,7 +134,7 @@ def part_ranges(policy: nn.Module, enter: Callable[[str], None], leave: Callable
     """
     Inside the block, ``enter(label)`` and ``leave()`` around the forward pass of each part's modules (forward hooks),
     around each call of the methods of ``ENTRY_POINTS``, and ``enter(OPTIMIZER)``, ``leave()`` around every gradient
-    clipping and Adam step (``sb3_dsslac.dsslac``'s ``clip_grads`` and ``adam_step``, wrapped); all gone after it.
+    clipping and Adam step (``sb3_dsslac.gradient_step``'s ``clip_grads`` and ``adam_step``, wrapped); all gone after it.
     """
     handles: list[RemovableHandle] = []
     for label, paths in PARTS.items():
@@ -144,7 +144,7 @@ def part_ranges(policy: nn.Module, enter: Callable[[str], None], leave: Callable
                 module.register_forward_pre_hook(lambda *_, label=label: enter(label)),
                 module.register_forward_hook(lambda *_: leave(), always_call=True),
             ]
-    wrapped: list[tuple[Any, str, str]] = [(dsslac_module, name, OPTIMIZER) for name in ("clip_grads", "adam_step")]
+    wrapped: list[tuple[Any, str, str]] = [(gradient_step_module, name, OPTIMIZER) for name in ("clip_grads", "adam_step")]
     for path, methods in ENTRY_POINTS.items():
         label = next(label for label, paths in PARTS.items() if path in paths)
         wrapped += [(policy.get_submodule(path), name, label) for name in methods]

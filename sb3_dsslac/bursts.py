@@ -203,16 +203,22 @@ class UpdateBursts:
     def end_burst(self, history: dict[str, list[th.Tensor]], n_updates: int, timestep: int) -> dict[str, float]:
         """
         The one host read of a burst: the mean of each logged statistic (the smallest of a ``*_min`` one, the largest of
-        a ``*_max`` one), the NaN notes and, for the "critic" rule, the multiplier. Raises if a loss became NaN or inf.
+        a ``*_max`` one) and the largest KL of an update (``kl_max``), the NaN notes and, for the "critic" rule, the
+        multiplier. Raises if a loss became NaN or inf.
 
         :param n_updates: the updates before this burst, and ``timestep`` the agent step: where a NaN error says it was
         """
         step = self.step
-        means = [_reduce_burst(name, th.stack(values).float()) for name, values in history.items()]
-        packed = th.cat([th.stack(means), step.guard.first_nonfinite_update.float(), step.lagrange_raw.view(1).float()])
+        stats = {name: _reduce_burst(name, th.stack(values).float()) for name, values in history.items()}
+        if "kl" in history:
+            # A spike can last a single update: the burst's largest KL beside its mean
+            stats["kl_max"] = th.stack(history["kl"]).float().amax()
+        packed = th.cat(
+            [th.stack(list(stats.values())), step.guard.first_nonfinite_update.float(), step.lagrange_raw.view(1).float()]
+        )
         values = packed.cpu().numpy().astype(np.float64)
-        n_stats = len(means)
+        n_stats = len(stats)
         NonFiniteGuard.raise_if_noted(values[n_stats : n_stats + len(GUARDED_LOSSES)], n_updates, timestep)
         if step.critic_lagrange_budget is not None:
             self.lagrange_raw.fill_(values[-1])
-        return dict(zip(history, values[:n_stats].tolist(), strict=True))
+        return dict(zip(stats, values[:n_stats].tolist(), strict=True))

@@ -497,8 +497,22 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
             self._n_updates += gradient_steps
             self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
             self.logger.record("train/lagrange_multiplier", self.lagrange_multiplier)
-            for key, value in means.items():
-                self.logger.record(f"train/{key}", value)
+            self._record_burst(means)
+
+    def _record_burst(self, stats: dict[str, float]) -> None:
+        """
+        Log a burst's statistics as ``train/<key>``. The logger writes every few episodes, many bursts apart: a mean is
+        the last burst's, a ``*_min`` or ``*_max`` the extreme over every burst since the last write, so no spike of
+        the latent model goes unlogged.
+        """
+        logged = self.logger.name_to_value
+        for key, value in stats.items():
+            name = f"train/{key}"
+            if name in logged and key.endswith("_min"):
+                value = min(value, logged[name])
+            elif name in logged and key.endswith("_max"):
+                value = max(value, logged[name])
+            self.logger.record(name, value)
 
     def _pretrain_latent(self) -> None:
         """The one-off latent pre-training of Algorithm 1 (W_t updates), after standardising vectors by the warm-up data."""

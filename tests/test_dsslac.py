@@ -46,6 +46,11 @@ def test_learn_logs_every_key(obs_type: str, tmp_path) -> None:
         "rollout/ep_cost_mean",
         "rollout/cost_rate",
         "train/kl",
+        "train/kl_max",
+        "train/prior_std_min",
+        "train/posterior_std_min",
+        "train/z_abs_max",
+        "train/reconstruction_abs_max",
         "train/image_loss",
         "train/reward_loss",
         "train/cost_loss",
@@ -58,6 +63,19 @@ def test_learn_logs_every_key(obs_type: str, tmp_path) -> None:
         "time/sim_steps",
     }
     assert expected <= set(header)
+
+
+def test_burst_extremes_hold_until_the_logger_writes(tmp_path) -> None:
+    model = small_model(HazardPointEnv())
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model._record_burst({"kl": 40.0, "kl_max": 1e12, "prior_std_min": 1e-5})
+    model._record_burst({"kl": 45.0, "kl_max": 50.0, "prior_std_min": 0.3})
+    logged = model.logger.name_to_value
+    # A spike in an earlier burst is kept; a mean is the last burst's
+    assert (logged["train/kl"], logged["train/kl_max"], logged["train/prior_std_min"]) == (45.0, 1e12, 1e-5)
+    model.logger.dump(1)
+    model._record_burst({"kl": 42.0, "kl_max": 48.0, "prior_std_min": 0.2})
+    assert (logged["train/kl_max"], logged["train/prior_std_min"]) == (48.0, 0.2)
 
 
 def test_pretraining_runs_once_across_resumed_learns(monkeypatch) -> None:
