@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.logger import Logger
 from tqdm.auto import tqdm
 
 from sb3_dsslac.buffers import SequenceBatch, SequenceReplayBuffer
@@ -31,6 +32,22 @@ def _reduce_burst(name: str, values: th.Tensor) -> th.Tensor:
     if name.endswith("_max"):
         return values.amax()
     return values.mean()
+
+
+def record_burst(logger: Logger, stats: dict[str, float]) -> None:
+    """
+    Log a burst's statistics as ``train/<key>``. The logger writes every few episodes, many bursts apart: a mean is
+    the last burst's, a ``*_min`` or ``*_max`` the extreme over every burst since the last write, so no spike of the
+    latent model goes unlogged.
+    """
+    logged = logger.name_to_value
+    for key, value in stats.items():
+        name = f"train/{key}"
+        if name in logged and key.endswith("_min"):
+            value = min(value, logged[name])
+        elif name in logged and key.endswith("_max"):
+            value = max(value, logged[name])
+        logger.record(name, value)
 
 
 class UpdateBursts:

@@ -20,7 +20,7 @@ from stable_baselines3.common.utils import safe_mean, update_learning_rate
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dsslac.buffers import SequenceReplayBuffer
-from sb3_dsslac.bursts import UpdateBursts
+from sb3_dsslac.bursts import UpdateBursts, record_burst
 from sb3_dsslac.env_info import action_repeat_of, cost_from_info, episode_length_of
 from sb3_dsslac.gradient_step import GradientStep
 from sb3_dsslac.lagrange import LAGRANGE_RULES, CostBudget, inverse_softplus, with_lagrange_callback
@@ -497,22 +497,7 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
             self._n_updates += gradient_steps
             self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
             self.logger.record("train/lagrange_multiplier", self.lagrange_multiplier)
-            self._record_burst(means)
-
-    def _record_burst(self, stats: dict[str, float]) -> None:
-        """
-        Log a burst's statistics as ``train/<key>``. The logger writes every few episodes, many bursts apart: a mean is
-        the last burst's, a ``*_min`` or ``*_max`` the extreme over every burst since the last write, so no spike of
-        the latent model goes unlogged.
-        """
-        logged = self.logger.name_to_value
-        for key, value in stats.items():
-            name = f"train/{key}"
-            if name in logged and key.endswith("_min"):
-                value = min(value, logged[name])
-            elif name in logged and key.endswith("_max"):
-                value = max(value, logged[name])
-            self.logger.record(name, value)
+            record_burst(self.logger, means)
 
     def _pretrain_latent(self) -> None:
         """The one-off latent pre-training of Algorithm 1 (W_t updates), after standardising vectors by the warm-up data."""
