@@ -118,6 +118,7 @@ def test_sqlite_study_is_continued_by_a_second_call(tmp_path: Path) -> None:
 
 
 def test_two_workers_share_one_study(tmp_path: Path) -> None:
+    # About 10 s: two tune processes, each importing torch and training a tiny trial
     journal = tmp_path / "study.log"
     command = [sys.executable, "-m", "sb3_dsslac", "tune", "--env", TINY_ENV, "--timesteps=60", "--n-trials=1"]
     command += ["--storage", str(journal), "--study-name", "shared", "--n-evaluations=2", "--eval-episodes=1"]
@@ -139,6 +140,7 @@ def test_two_workers_share_one_study(tmp_path: Path) -> None:
 @pytest.mark.skipif(POSTGRES_URL is None, reason="no PostgreSQL server: set DSSLAC_TEST_POSTGRES_URL (.ci/postgres.sh)")
 def test_a_killed_worker_s_trial_is_retried_on_postgresql() -> None:
     """Two workers on one PostgreSQL study, one SIGKILLed mid-trial: its trial fails by heartbeat and the other reruns it."""
+    # About 15 s: the killed trial is only seen as failed once its heartbeat goes stale
     study_name = f"killed_{uuid.uuid4().hex[:8]}"
     command = [sys.executable, "-m", "sb3_dsslac", "tune", "--env", TINY_ENV, "--timesteps=200", "--total-trials=2"]
     command += ["--storage", POSTGRES_URL, "--study-name", study_name, "--n-evaluations=4", "--eval-episodes=1"]
@@ -206,6 +208,7 @@ def test_a_storage_that_cannot_be_opened_ends_tune_with_its_name(tmp_path: Path,
 @pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
 def test_workers_released_together_on_a_new_storage_all_run(kind: str) -> None:
     """Four tune workers released by one barrier on a new storage: all exit 0 and the study holds their four trials."""
+    # About 20 s per storage: four worker processes, each importing torch and training one tiny trial
     if kind == "postgresql" and POSTGRES_URL is None:
         pytest.skip("no PostgreSQL server: set DSSLAC_TEST_POSTGRES_URL (.ci/postgres.sh)")
     command = [sys.executable, "tools/tune_start_race.py", "--rounds=1", "--workers=4", "--storages", kind]

@@ -66,6 +66,7 @@ def test_the_zoo_sampler_and_its_converter_agree() -> None:
 
 
 def test_zoo_trains_and_enjoys_dsslac_with_cost(tmp_path: Path) -> None:
+    # About 12 s: rl-zoo3's train and enjoy, each its own process importing the zoo, torch and MuJoCo
     pytest.importorskip("rl_zoo3")
     (tmp_path / "tiny.yml").write_text(yaml.safe_dump({"SafetyGym/PointGoal1-v0": TINY}))
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
