@@ -1,4 +1,4 @@
-"""Random-policy sanity numbers (SAFETY_GYM_SPEC.md section 7.5): episode return, cost and goals per episode.
+"""Random-policy sanity numbers: episode return, cost and goals per episode.
 
 Usage: ``python benchmarks/random_policy.py [--episodes 100] [--ids SafetyGym/PointGoal1-v0 ...]``. A fresh uniform random
 action every simulator step (``action_repeat=1``, as the Safety-Gym and Safety-Gymnasium random-policy numbers were

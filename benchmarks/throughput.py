@@ -18,7 +18,7 @@ batch 64 and the thesis's networks) and at the small presets ``cpu`` (PointGoal1
 The small presets always time ``compile_updates=True`` beside the eager update, the thesis shapes only on CUDA or
 with ``--compile``.
 
-The first row re-creates the thesis code's update path (``../shared/REFERENCE_IMPLS.md`` sections 6 and 9) on this
+The first row re-creates the thesis code's update path (as the thesis's public code does it) on this
 package's networks, so that both run in the same process on the same machine: each batch assembled on the host by a
 Python loop over per-sequence lists of frame references and copied to the device (pageable), separate latent and
 actor-critic batches (two encoder passes), NCHW convolutions, a Python loop of Polyak updates (two kernels per

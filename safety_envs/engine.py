@@ -1,6 +1,6 @@
 """The Safety-Gym Goal, Button and Push tasks as a Gymnasium env: dynamics, reward, cost and observations.
 
-The rules follow SAFETY_GYM_SPEC.md sections 1-4 and 6; ``docs/safety_envs.md`` maps each rule to the spec.
+The rules follow Safety-Gym's; ``docs/safety_envs.md`` lists each of them.
 """
 
 import warnings

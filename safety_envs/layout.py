@@ -1,4 +1,4 @@
-"""Placement sampling with keepouts and rejection sampling (SAFETY_GYM_SPEC.md section 1.4).
+"""Placement sampling with keepouts and rejection sampling, as Safety-Gym's (docs/safety_envs.md).
 
 Positions are planar (x, y) in m. Each object is drawn uniformly in the placement extents shrunk by its own
 keepout; a draw is valid when its distance to every object already placed is at least the sum of the two

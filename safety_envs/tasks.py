@@ -1,4 +1,4 @@
-"""Task and robot tables: every number a Safety-Gym Goal, Button or Push task needs (SAFETY_GYM_SPEC.md sections 1-5).
+"""Task and robot tables: every number a Safety-Gym Goal, Button or Push task needs (docs/safety_envs.md).
 
 Lengths are in m. A new task or robot is one more entry here plus its objects in ``world.py`` and its rules in
 ``engine.py``.

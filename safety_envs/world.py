@@ -1,4 +1,4 @@
-"""MJCF assembly: floor, robot, task objects, light and cameras (SAFETY_GYM_SPEC.md sections 1.1, 4.3, 6.2, 6.3).
+"""MJCF assembly: floor, robot, task objects, light and cameras (docs/safety_envs.md).
 
 The model is compiled once per env with every object of the task; :mod:`safety_envs.engine` moves the objects at
 reset instead of recompiling: the goal, buttons, hazards and pillars are mocap bodies (fixed in the world, placed
@@ -17,7 +17,7 @@ from safety_envs.tasks import RobotSpec, TaskSpec
 
 ROBOTS_DIR = Path(__file__).parent / "robots"
 
-# Geom groups (SAFETY_GYM_SPEC.md section 6.2): the vision camera renders groups 0-5.
+# Geom groups, as Safety-Gym's: the vision camera renders groups 0-5.
 GROUP_GOAL = 0
 GROUP_BOX = 1
 GROUP_BUTTON = 1

@@ -1,4 +1,4 @@
-"""Safety-Gym rebuild: API contract, env checkers, and the task rules of SAFETY_GYM_SPEC.md (sections 1-6, 10)."""
+"""Safety-Gym rebuild: API contract, env checkers, and Safety-Gym's task rules (docs/safety_envs.md)."""
 
 import warnings
 

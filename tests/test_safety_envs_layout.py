@@ -1,4 +1,4 @@
-"""Placement sampling (SAFETY_GYM_SPEC.md section 1.4) and the state vector's lidar (section 4.1)."""
+"""Placement sampling and the state vector's lidar, by Safety-Gym's rules (docs/safety_envs.md)."""
 
 import numpy as np
 import pytest

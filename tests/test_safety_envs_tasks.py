@@ -1,4 +1,4 @@
-"""Doggo, Button and Push (SAFETY_GYM_SPEC.md sections 2, 3, 4.3, 5.3, 6.3-6.4 and 10.9)."""
+"""Doggo, Button and Push, by Safety-Gym's rules (docs/safety_envs.md)."""
 
 import gymnasium as gym
 import mujoco

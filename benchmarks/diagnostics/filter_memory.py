@@ -1,11 +1,11 @@
 """
 How much does a pixel agent's belief remember? The actor and the critics are trained on beliefs filtered over a
 replay window of ``sequence_length`` frames, but act on the online filter's belief, carried from the episode's first
-frame (REFERENCE_IMPLS, "sequence-window versus online-filter mismatch"). Along episodes of the agent's own stochastic
-policy, this prints how far the episode-long filter's belief is from the belief filtered over only the last k frames,
-as a share of the belief's variance (filter means on both sides, so that sampling noise does not count). Near 0
-already at a small k means that the belief is a function of the last k frames: what left the view earlier (the goal,
-once the robot turns away) is forgotten, and the window/online mismatch does not matter.
+frame, as in the reference code. Along episodes of the agent's own stochastic policy, this prints how far the
+episode-long filter's belief is from the belief filtered over only the last k frames, as a share of the belief's
+variance (filter means on both sides, so that sampling noise does not count). Near 0 already at a small k means that
+the belief is a function of the last k frames: what left the view earlier (the goal, once the robot turns away) is
+forgotten, and the window/online mismatch does not matter.
 
     python benchmarks/diagnostics/filter_memory.py runs/<run>  # a run of `python -m sb3_dsslac train --obs-type pixels`
     python benchmarks/diagnostics/filter_memory.py model.zip --episodes 10
