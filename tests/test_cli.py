@@ -263,6 +263,7 @@ def test_pixels_safety_gym_run(tmp_path: Path, capsys) -> None:
     A few steps of the real pixel task through the command line at 32x32 (``--env-kwargs``): sim steps become agent
     steps (action repeat 2), and ``evaluate`` and ``beliefs`` make the run's own 32x32 env.
     """
+    # About 5 s: the real pixel task rendered, trained and evaluated through the whole command
     out = tmp_path / "pg1"
     flags = ["--sim-steps=120", "--eval-every=120", "--eval-episodes=1", "--checkpoint-every=120", "--preset=cpu"]
     assert (

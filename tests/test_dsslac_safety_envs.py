@@ -69,7 +69,8 @@ def test_subproc_envs_of_two_tasks_train_with_one_update_per_agent_step() -> Non
 
 
 def test_cpu_pixels_preset_trains_the_narrow_conv_model_on_pointgoal1(tmp_path) -> None:
-    # Eager updates: compiling them costs minutes of CPU (tests/test_fast_path.py covers the compiled update)
+    # About 5 s: the real pixel task's renders and the preset's conv model. Eager updates: compiling them costs minutes
+    # of CPU (tests/test_fast_path.py covers the compiled update)
     overrides = {"learning_starts": 40, "latent_pretrain_steps": 2, "train_freq": 20, "buffer_size": 2000}
     overrides["compile_updates"] = False
     hyperparams = preset_hyperparams("cpu_pixels", overrides)
