@@ -226,10 +226,11 @@ class UpdateBursts:
         :param n_updates: the updates before this burst, and ``timestep`` the agent step: where a NaN error says it was
         """
         step = self.step
-        stats = {name: _reduce_burst(name, th.stack(values).float()) for name, values in history.items()}
-        if "kl" in history:
+        stacked = {name: th.stack(values).float() for name, values in history.items()}
+        stats = {name: _reduce_burst(name, values) for name, values in stacked.items()}
+        if "kl" in stacked:
             # A spike can last a single update: the burst's largest KL beside its mean
-            stats["kl_max"] = th.stack(history["kl"]).float().amax()
+            stats["kl_max"] = stacked["kl"].amax()
         packed = th.cat(
             [th.stack(list(stats.values())), step.guard.first_nonfinite_update.float(), step.lagrange_raw.view(1).float()]
         )
