@@ -4,7 +4,8 @@ bringing the evaluation episode cost under the budget.
 
 Every seed is a `python -m sb3_dsslac train` run in its own process with one torch thread (``--parallel`` at once),
 checkpointed every ``--checkpoint-every`` simulator steps. The benchmark is resumable: started again after any stop,
-it continues each unfinished seed from its last checkpoint and reuses the finished ones. It writes, under
+it continues each unfinished seed from its last checkpoint and reuses the finished ones; a finished seed asked
+for more ``--sim-steps`` than it ran is extended from its last checkpoint. It writes, under
 ``benchmarks/results/learning_<task>_<obs>_<preset>/`` (plus ``_<key>_<value>`` per ``--hyperparams`` override), a CSV
 per seed, ``curves.png`` (reward and cost against simulator steps: each seed, their mean, the budget and the random
 policy's level; and each seed's Lagrange multiplier) and ``table.md`` (with each seed's wall and CPU minutes). On
@@ -38,6 +39,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
 from sb3_dsslac import DSSLAC, CostEvalCallback
+from sb3_dsslac.envs import make_env
 from sb3_dsslac.beliefs import episode_beliefs, mean_cost_probabilities, plot_beliefs
 from sb3_dsslac.plotting import RunResults, load_run, task_name
 from sb3_dsslac.presets import preset_hyperparams
@@ -97,9 +99,11 @@ def train_and_evaluate(
     )
 
 
-def random_policy_results(env_id: str, obs_type: str, n_episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Episode rewards and costs of uniform random actions on the evaluation seeds."""
-    env = gym.make(env_id, obs_type=obs_type)
+def random_policy_results(
+    env_id: str, obs_type: str, env_kwargs: dict[str, Any], n_episodes: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Episode rewards and costs of uniform random actions on the evaluation seeds, in the runs' env settings."""
+    env = make_env(env_id, obs_type, env_kwargs=env_kwargs)
     env.action_space.seed(seed)
     rewards, costs = [], []
     for episode in range(n_episodes):
@@ -156,9 +160,12 @@ RUNS_DIR = "runs"
 TIMING_FILE = "wall_minutes.json"
 
 
-def seed_state(run_dir: Path) -> str:
-    """``"finished"`` (the final model is there), ``"resume"`` (a checkpoint to continue from) or ``"fresh"``."""
-    if (run_dir / FINAL_MODEL).is_file():
+def seed_state(run_dir: Path, sim_steps: int) -> str:
+    """
+    ``"finished"`` (the final model of at least ``sim_steps`` simulator steps is there), ``"resume"`` (a checkpoint to
+    continue from: a stopped run, or a finished one asked for more steps) or ``"fresh"``.
+    """
+    if (run_dir / FINAL_MODEL).is_file() and load_config(run_dir).sim_steps >= sim_steps:
         return "finished"
     if (run_dir / "config.yaml").is_file() and find_checkpoint(run_dir) is not None:
         return "resume"
@@ -168,8 +175,8 @@ def seed_state(run_dir: Path) -> str:
 def seed_command(run_dir: Path, seed: int, args: argparse.Namespace) -> list[str]:
     """The ``train`` command of one seed: a fresh run (an unfinished one without a checkpoint is redone) or a resume."""
     train = [sys.executable, "-m", "sb3_dsslac", "train", "--quiet", "--no-progress-bar"]
-    if seed_state(run_dir) == "resume":
-        return [*train, "--resume", str(run_dir)]
+    if seed_state(run_dir, args.sim_steps) == "resume":
+        return [*train, "--resume", str(run_dir), "--sim-steps", str(args.sim_steps)]
     if run_dir.exists():
         shutil.rmtree(run_dir)  # stopped before its first checkpoint: nothing to continue from
     command = [*train, "--env", args.env, "--obs-type", args.obs_type, "--preset", args.preset, "--seed", str(seed)]
@@ -185,7 +192,7 @@ def run_seeds(args: argparse.Namespace, runs_root: Path) -> None:
     Run every unfinished seed, ``args.parallel`` at a time; a stop (Ctrl-C, SIGTERM) ends them all. A seed that fails
     does not stop the others: the benchmark exits with an error naming it once they have ended.
     """
-    pending = [seed for seed in args.seeds if seed_state(runs_root / f"seed{seed}") != "finished"]
+    pending = [seed for seed in args.seeds if seed_state(runs_root / f"seed{seed}", args.sim_steps) != "finished"]
     failed: dict[int, int] = {}
     for seed in sorted(set(args.seeds) - set(pending)):
         print(f"seed {seed}: finished earlier, reused")
@@ -248,14 +255,18 @@ def children_cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def random_level(args: argparse.Namespace, out: Path) -> tuple[np.ndarray, np.ndarray]:
-    """The random policy's episode rewards and costs on the evaluation seeds, computed once and kept in ``out``."""
+def random_level(args: argparse.Namespace, out: Path, env_kwargs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """
+    The random policy's episode rewards and costs on the evaluation seeds with the runs' env keywords (action repeat,
+    frame size), kept in ``out`` and computed again when those keywords change.
+    """
     path = out / "random_policy.json"
     if path.is_file():
         saved = json.loads(path.read_text())
-        return np.array(saved["rewards"]), np.array(saved["costs"])
-    rewards, costs = random_policy_results(args.env, args.obs_type, args.random_episodes, 10_000)
-    path.write_text(json.dumps({"rewards": rewards.tolist(), "costs": costs.tolist()}))
+        if saved.get("env_kwargs") == env_kwargs and len(saved["rewards"]) == args.random_episodes:
+            return np.array(saved["rewards"]), np.array(saved["costs"])
+    rewards, costs = random_policy_results(args.env, args.obs_type, env_kwargs, args.random_episodes, 10_000)
+    path.write_text(json.dumps({"env_kwargs": env_kwargs, "rewards": rewards.tolist(), "costs": costs.tolist()}))
     return rewards, costs
 
 
@@ -432,7 +443,7 @@ def main() -> None:
 
     run_seeds(args, runs_root)
     runs = {seed: load_run(runs_root / f"seed{seed}") for seed in args.seeds}
-    random = random_level(args, out)
+    random = random_level(args, out, load_config(runs_root / f"seed{args.seeds[0]}").env_kwargs)
     for seed, run in runs.items():
         write_seed_csv(out / f"seed{seed}.csv", run)
     overrides = f" with {' '.join([*args.env_kwargs, *args.hyperparams])}" if args.env_kwargs or args.hyperparams else ""

@@ -18,9 +18,10 @@ TINY = [
 ]  # fmt: skip
 
 
-def run_benchmark(out: Path, *seeds: str) -> str:
+def run_benchmark(out: Path, *seeds: str, sim_steps: int = 200) -> str:
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
     command = [sys.executable, "benchmarks/learning.py", *TINY, "--seeds", *seeds, "--out", str(out)]
+    command += ["--sim-steps", str(sim_steps)]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
     return result.stdout
@@ -63,6 +64,11 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
     assert (runs / "seed1" / "model.zip").is_file() and (runs / "seed2" / "model.zip").is_file()
     assert "mean ± std of 3 seeds" in (tmp_path / "table.md").read_text()
 
+    # A finished seed asked for more simulator steps continues from its last checkpoint, its evaluations kept
+    output = run_benchmark(tmp_path, "0", sim_steps=300)
+    assert "seed 0: resuming" in output and "--sim-steps 300" in output
+    assert [line.split(",")[0] for line in (tmp_path / "seed0.csv").read_text().splitlines()[1:]] == ["100", "200", "300"]
+
 
 def test_a_failed_seed_does_not_stop_the_others(monkeypatch, tmp_path, capsys) -> None:
     monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
@@ -75,7 +81,7 @@ def test_a_failed_seed_does_not_stop_the_others(monkeypatch, tmp_path, capsys) -
         return [sys.executable, "-c", "import sys; sys.exit(3)" if seed == 1 else code]
 
     monkeypatch.setattr(learning, "seed_command", seed_command)
-    args = learning.argparse.Namespace(seeds=[0, 1, 2], parallel=2, poll=0.1)
+    args = learning.argparse.Namespace(seeds=[0, 1, 2], parallel=2, poll=0.1, sim_steps=200)
     with pytest.raises(SystemExit, match=r"failed: seed 1 \(exit 3\): .*seed1.log; run the benchmark again"):
         learning.run_seeds(args, tmp_path)
     assert (tmp_path / "seed0" / "done").is_file() and (tmp_path / "seed2" / "done").is_file()
@@ -93,6 +99,9 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     assert (tmp_path / "beliefs.png").read_bytes()[:4] == b"\x89PNG"
     assert (tmp_path / "episode.mp4").stat().st_size > 1000
     assert "env_kwargs:\n  max_episode_steps: 25\n" in (tmp_path / "runs" / "seed3" / "config.yaml").read_text()
+    # The random baseline runs in the runs' env settings: 25-step episodes, so at most 25 cost each
+    random = json.loads((tmp_path / "random_policy.json").read_text())
+    assert random["env_kwargs"] == {"max_episode_steps": 25} and max(random["costs"]) <= 25
     row = next(line for line in (tmp_path / "table.md").read_text().splitlines() if "seed 3" in line)
     wall, cpu = (float(cell) for cell in row.strip("|").split("|")[-2:])
     assert 0 < cpu <= 2 * wall  # one torch thread: at most the process's own core plus its render and data threads
