@@ -25,13 +25,22 @@ from sb3_dsslac.timing import TimeAccount
 PRETRAIN_BURST = 100
 
 
+# The extremes among the logged statistics, by suffix: their reduction over a burst's updates (tensor) and over bursts
+EXTREMES: dict[str, tuple[Callable[[th.Tensor], th.Tensor], Callable[[float, float], float]]] = {
+    "_min": (th.amin, min),
+    "_max": (th.amax, max),
+}
+
+
+def _extreme(name: str) -> tuple[Callable[[th.Tensor], th.Tensor], Callable[[float, float], float]] | None:
+    """The reductions of a ``*_min`` or ``*_max`` statistic; None for the others, which are means."""
+    return next((reductions for suffix, reductions in EXTREMES.items() if name.endswith(suffix)), None)
+
+
 def _reduce_burst(name: str, values: th.Tensor) -> th.Tensor:
     """A statistic over a burst (U,) -> (): the least of a ``*_min`` one, the most of a ``*_max`` one, else the mean."""
-    if name.endswith("_min"):
-        return values.amin()
-    if name.endswith("_max"):
-        return values.amax()
-    return values.mean()
+    extreme = _extreme(name)
+    return values.mean() if extreme is None else extreme[0](values)
 
 
 def record_burst(logger: Logger, stats: dict[str, float]) -> None:
@@ -43,11 +52,8 @@ def record_burst(logger: Logger, stats: dict[str, float]) -> None:
     logged = logger.name_to_value
     for key, value in stats.items():
         name = f"train/{key}"
-        if name in logged and key.endswith("_min"):
-            value = min(value, logged[name])
-        elif name in logged and key.endswith("_max"):
-            value = max(value, logged[name])
-        logger.record(name, value)
+        extreme = _extreme(key)
+        logger.record(name, value if extreme is None or name not in logged else extreme[1](value, logged[name]))
 
 
 class UpdateBursts:
