@@ -2,16 +2,16 @@
 The recurrent steps of the latent model's posterior rollout as one autograd node, with the backward pass through time
 written by hand.
 
-Recorded by autograd, each step of the rollout is two ELU MLPs (z1's posterior, z2's transition), a split, a softplus
-and a reparameterised sample per MLP, every linear layer with its own weight transpose; backpropagating adds each
-weight's per-step gradients one at a time. Here the forward pass computes the same arithmetic with each weight
-transposed once per rollout and the inputs that do not recur (the frames' features, the actions) multiplied for all
-steps at once. The backward pass carries only the recurrent gradients step by step; the gradient of every weight,
-bias, feature and action is one matrix product (or sum) over all steps. Same math, far fewer ops: what a GPU pays
+Recorded by autograd, each step of the rollout is two ELU MLPs (z1's posterior, z2's transition), a split, the mean's
+and std's functions and a reparameterised sample per MLP, every linear layer with its own weight transpose;
+backpropagating adds each weight's per-step gradients one at a time. Here the forward pass computes the same arithmetic
+with each weight transposed once per rollout and the inputs that do not recur (the frames' features, the actions)
+multiplied for all steps at once. The backward pass carries only the recurrent gradients step by step; the gradient of
+every weight, bias, feature and action is one matrix product (or sum) over all steps. Same math, far fewer ops: what a GPU pays
 for in kernel launches when the update is eager.
 
 The layout of both MLPs is ``GaussianMLP``'s: linear layers with ELU between them; the last one's output is
-``[mean, raw]`` and ``std = softplus(raw) + min_std`` (the module's ``min_std``). z1's posterior takes
+``[mean_raw, raw]``, made a mean and a std by the module's ``bounds`` (``GaussianBounds``). z1's posterior takes
 ``[feature, z2_prev, action]``, z2's transition ``[z1, z2_prev, action]``, in that column order.
 """
 
@@ -21,8 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-STD_EPS = 1e-5  # GaussianMLP's default floor on the standard deviation (the reference code's)
-_SOFTPLUS_THRESHOLD = 20.0  # torch.nn.functional.softplus's default
+from sb3_dsslac.gaussian import GaussianBounds
 
 
 def linear_layers(mlp: nn.Module) -> list[nn.Linear]:
@@ -35,22 +34,17 @@ def _elu_backward(grad: Tensor, output: Tensor) -> Tensor:
     return torch.ops.aten.elu_backward(grad, 1.0, 1.0, 1.0, True, output)
 
 
-def _softplus_backward(grad: Tensor, raw: Tensor) -> Tensor:
-    """Gradient of softplus (beta 1) at ``raw``."""
-    return torch.ops.aten.softplus_backward(grad, raw, 1.0, _SOFTPLUS_THRESHOLD)
-
-
 def _layer_pairs(params: list[Tensor]) -> list[tuple[Tensor, Tensor]]:
     """``[w0, b0, w1, b1, ...]`` -> ``[(w0, b0), (w1, b1), ...]``."""
     return list(zip(params[::2], params[1::2], strict=True))
 
 
 def _mlp_forward(
-    hidden: Tensor, layers: list[tuple[Tensor, Tensor]], kept: list[list[Tensor]], out_dim: int, min_std: float
+    hidden: Tensor, layers: list[tuple[Tensor, Tensor]], kept: list[list[Tensor]], out_dim: int, bounds: GaussianBounds
 ) -> tuple[Tensor, Tensor, Tensor]:
     """
     One step's forward pass through an MLP from its first layer's pre-activation (B, H), noting each hidden output in
-    ``kept``: the mean, the raw std and ``std = softplus(raw) + min_std``, each (B, out_dim).
+    ``kept``: the mean, the raw std and the std, each (B, out_dim).
 
     :param layers: the transposed weight (in, out) and the bias of each layer after the first
     """
@@ -58,8 +52,9 @@ def _mlp_forward(
         hidden = F.elu(hidden)
         kept[layer].append(hidden)
         hidden = torch.addmm(bias, hidden, weight_t)
-    mean, raw = hidden.split(out_dim, dim=1)
-    return mean, raw, F.softplus(raw) + min_std
+    mean_raw, raw = hidden.split(out_dim, dim=1)
+    mean, std = bounds(mean_raw, raw)
+    return mean, raw, std
 
 
 def _rollout(
@@ -70,17 +65,17 @@ def _rollout(
     z2_noise: Tensor,
     posterior_params: list[Tensor],
     transition_params: list[Tensor],
-    min_stds: tuple[float, float],
+    bounds: tuple[GaussianBounds, GaussianBounds],
     keep: bool,
 ) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
     """
     The forward pass of ``posterior_steps`` (see there for the arguments).
 
-    :param min_stds: the floors on z1's posterior std and on z2's transition std
+    :param bounds: the ``GaussianBounds`` of z1's posterior and of z2's transition
     :param keep: also return what the backward pass needs
     :return: the outputs ``(z1_mean, z1_std, z1, z2)``, each (B, T+1, dim), and, with ``keep``, in time-major rows
         (T * B, dim): the features, the actions, z2's transition's inputs ``[z1, z2_prev]``, then per MLP its hidden
-        outputs layer by layer and its raw std
+        outputs layer by layer, its mean and its raw std
     """
     batch, steps, feature_dim = features.shape
     z1_dim, z2 = z1_noise.shape[-1], first[3]
@@ -102,22 +97,24 @@ def _rollout(
     outputs = tuple([value] for value in first)
     posterior_hidden: list[list[Tensor]] = [[] for _ in posterior_layers]
     transition_hidden: list[list[Tensor]] = [[] for _ in transition_layers]
-    posterior_raw, transition_in, transition_raw = [], [], []
+    posterior_mean, posterior_raw, transition_in, transition_mean, transition_raw = [], [], [], [], []
     for posterior_in, transition_in_action, z1_eps, z2_eps in zip(
         posterior_inputs.split(batch), transition_inputs.split(batch), z1_noise.unbind(0), z2_noise.unbind(0), strict=True
     ):
         pre_activation = torch.addmm(posterior_in, z2, posterior_recurrent)
-        z1_mean, raw, z1_std = _mlp_forward(pre_activation, posterior_layers, posterior_hidden, z1_dim, min_stds[0])
+        z1_mean, raw, z1_std = _mlp_forward(pre_activation, posterior_layers, posterior_hidden, z1_dim, bounds[0])
         z1 = torch.addcmul(z1_mean, z1_std, z1_eps)
         pair = torch.cat([z1, z2], dim=1)
         pre_activation = torch.addmm(transition_in_action, pair, transition_recurrent)
-        z2_mean, raw2, z2_std = _mlp_forward(pre_activation, transition_layers, transition_hidden, z2_dim, min_stds[1])
+        z2_mean, raw2, z2_std = _mlp_forward(pre_activation, transition_layers, transition_hidden, z2_dim, bounds[1])
         z2 = torch.addcmul(z2_mean, z2_std, z2_eps)
 
         for output, value in zip(outputs, (z1_mean, z1_std, z1, z2), strict=True):
             output.append(value)
+        posterior_mean.append(z1_mean)
         posterior_raw.append(raw)
         transition_in.append(pair)
+        transition_mean.append(z2_mean)
         transition_raw.append(raw2)
     stacked = tuple(torch.stack(output, dim=1) for output in outputs)
     if not keep:
@@ -127,8 +124,10 @@ def _rollout(
         rows_actions,
         torch.cat(transition_in),
         *(torch.cat(layer) for layer in posterior_hidden),
+        torch.cat(posterior_mean),
         torch.cat(posterior_raw),
         *(torch.cat(layer) for layer in transition_hidden),
+        torch.cat(transition_mean),
         torch.cat(transition_raw),
     )
     return stacked, kept
@@ -153,12 +152,13 @@ class _PosteriorSteps(torch.autograd.Function):
     """``posterior_steps`` with the hand-written backward pass through time (module docstring)."""
 
     @staticmethod
-    def forward(ctx: Any, features, actions, z1_mean, z1_std, z1, z2, z1_noise, z2_noise, n_posterior: int, min_stds, *params):  # type: ignore[override]
+    def forward(ctx: Any, features, actions, z1_mean, z1_std, z1, z2, z1_noise, z2_noise, n_posterior: int, bounds, *params):  # type: ignore[override]
         first = (z1_mean, z1_std, z1, z2)
         posterior_params, transition_params = list(params[:n_posterior]), list(params[n_posterior:])
         outputs, kept = _rollout(
-            features, actions, first, z1_noise, z2_noise, posterior_params, transition_params, min_stds, keep=True
+            features, actions, first, z1_noise, z2_noise, posterior_params, transition_params, bounds, keep=True
         )
+        ctx.bounds = bounds
         ctx.layer_counts = (n_posterior // 2, (len(params) - n_posterior) // 2)
         ctx.dims = (features.shape[0], features.shape[1], z1_noise.shape[-1], z2.shape[-1])
         ctx.save_for_backward(z1_noise, z2_noise, *kept, *params)
@@ -171,12 +171,13 @@ class _PosteriorSteps(torch.autograd.Function):
         z1_noise, z2_noise, rows_features, rows_actions, transition_in, *rest = ctx.saved_tensors
         posterior_rows = rest[: n_posterior - 1]
         posterior_hidden = [rows.split(batch) for rows in posterior_rows]
-        posterior_raw = rest[n_posterior - 1].split(batch)
-        rest = rest[n_posterior:]
+        posterior_mean, posterior_raw = (rows.split(batch) for rows in rest[n_posterior - 1 : n_posterior + 1])
+        rest = rest[n_posterior + 1 :]
         transition_rows = rest[: n_transition - 1]
         transition_hidden = [rows.split(batch) for rows in transition_rows]
-        transition_raw = rest[n_transition - 1].split(batch)
-        params = rest[n_transition:]
+        transition_mean, transition_raw = (rows.split(batch) for rows in rest[n_transition - 1 : n_transition + 1])
+        params = rest[n_transition + 1 :]
+        posterior_bounds, transition_bounds = ctx.bounds
         posterior_weights, transition_weights = list(params[: 2 * n_posterior : 2]), list(params[2 * n_posterior :: 2])
         feature_dim, action_dim = rows_features.shape[1], rows_actions.shape[1]
         # The first layers' weights by input: [feature, z2_prev, action] and [z1, z2_prev, action]
@@ -192,10 +193,12 @@ class _PosteriorSteps(torch.autograd.Function):
         transition_grads: list[list[Tensor]] = [[] for _ in range(n_transition)]
         grad_z2_now = grads_z2[-1]
         for t in range(steps - 1, -1, -1):
-            # z2 = mean + (softplus(raw) + eps) * noise, then back through z2's transition
-            grad_raw = _softplus_backward(grad_z2_now * z2_eps[t], transition_raw[t])
+            # z2 = mean + std * noise, each a function of the MLP's output, then back through z2's transition
+            grad_mean, grad_raw = transition_bounds.backward(
+                grad_z2_now, grad_z2_now * z2_eps[t], transition_mean[t], transition_raw[t]
+            )
             grad_in = _mlp_backward(
-                torch.cat([grad_z2_now, grad_raw], dim=1),
+                torch.cat([grad_mean, grad_raw], dim=1),
                 [layer[t] for layer in transition_hidden],
                 transition_weights,
                 transition_grads,
@@ -203,9 +206,11 @@ class _PosteriorSteps(torch.autograd.Function):
             # z1 feeds z2's transition and is an output; z1_mean (through z1 too) and z1_std are outputs
             grad_z1_now = torch.addmm(grads_z1[t + 1], grad_in, transition_z1)
             grad_std = torch.addcmul(grads_z1_std[t + 1], grad_z1_now, z1_eps[t])
-            grad_raw = _softplus_backward(grad_std, posterior_raw[t])
+            grad_mean, grad_raw = posterior_bounds.backward(
+                grads_z1_mean[t + 1] + grad_z1_now, grad_std, posterior_mean[t], posterior_raw[t]
+            )
             grad_posterior_in = _mlp_backward(
-                torch.cat([grads_z1_mean[t + 1] + grad_z1_now, grad_raw], dim=1),
+                torch.cat([grad_mean, grad_raw], dim=1),
                 [layer[t] for layer in posterior_hidden],
                 posterior_weights,
                 posterior_grads,
@@ -254,17 +259,17 @@ def posterior_steps(
     :param first: frame 0's z1 posterior mean and std, z1 and z2: (B, Z1) three times, (B, Z2)
     :param z1_noise: (T, B, Z1) standard normal noise of the z1 samples of frames 1..T
     :param z2_noise: (T, B, Z2) standard normal noise of the z2 samples of frames 1..T
-    :param z1_posterior: the ``GaussianMLP`` of z1's posterior (its ``min_std`` floors the std)
+    :param z1_posterior: the ``GaussianMLP`` of z1's posterior (its ``bounds`` make its mean and std)
     :param z2_transition: the ``GaussianMLP`` of z2's transition
     :return: z1's posterior mean and std, z1 and z2 of frames 0..T, each (B, T+1, dim)
     """
     posterior_params = [param for layer in linear_layers(z1_posterior) for param in (layer.weight, layer.bias)]
     transition_params = [param for layer in linear_layers(z2_transition) for param in (layer.weight, layer.bias)]
-    min_stds = (float(z1_posterior.min_std), float(z2_transition.min_std))
+    bounds = (z1_posterior.bounds, z2_transition.bounds)
     if not torch.is_grad_enabled():
-        return _rollout(
-            features, actions, first, z1_noise, z2_noise, posterior_params, transition_params, min_stds, keep=False
-        )[0]
+        return _rollout(features, actions, first, z1_noise, z2_noise, posterior_params, transition_params, bounds, keep=False)[
+            0
+        ]
     return _PosteriorSteps.apply(
-        features, actions, *first, z1_noise, z2_noise, len(posterior_params), min_stds, *posterior_params, *transition_params
+        features, actions, *first, z1_noise, z2_noise, len(posterior_params), bounds, *posterior_params, *transition_params
     )

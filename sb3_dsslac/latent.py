@@ -10,7 +10,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from sb3_dsslac.convolutions import DenseConv2d, DenseConvTranspose2d, SubpixelConvTranspose2d
-from sb3_dsslac.fused_rollout import STD_EPS, posterior_steps
+from sb3_dsslac.fused_rollout import posterior_steps
+from sb3_dsslac.gaussian import STD_EPS, GaussianBounds
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 _LOG_COST_EPS = math.log(1e-6)
@@ -73,16 +74,17 @@ def fixed_std_gaussian_nll(x: Tensor, mean: Tensor, std: float) -> Tensor:
 
 class GaussianMLP(nn.Module):
     """
-    Diagonal Gaussian whose mean and std are an ELU MLP of the concatenated inputs; ``std = softplus(raw) + min_std``.
+    Diagonal Gaussian whose mean and std are an ELU MLP of the concatenated inputs: the MLP's ``[mean_raw, raw]`` made
+    a mean and a std by ``bounds`` (by default ``std = softplus(raw) + 1e-5``, the reference code's).
 
-    :param min_std: the floor on the std (1e-5 in the reference code)
+    :param bounds: the std's floor and ceiling and the mean's bound (None: the reference code's)
     """
 
-    def __init__(self, input_dim: int, output_dim: int, hidden_units: tuple[int, ...], min_std: float = STD_EPS) -> None:
+    def __init__(
+        self, input_dim: int, output_dim: int, hidden_units: tuple[int, ...], bounds: GaussianBounds | None = None
+    ) -> None:
         super().__init__()
-        if not min_std > 0.0:
-            raise ValueError(f"min_std must be > 0, got {min_std}")
-        self.min_std = min_std
+        self.bounds = GaussianBounds() if bounds is None else bounds
         self.net = build_mlp(input_dim, 2 * output_dim, hidden_units, nn.ELU)
 
     def forward(self, *inputs: Tensor) -> tuple[Tensor, Tensor]:
@@ -92,8 +94,8 @@ class GaussianMLP(nn.Module):
             out = self.net(x.reshape(-1, x.shape[-1])).view(*x.shape[:-1], -1)
         else:
             out = self.net(x)
-        mean, raw_std = out.chunk(2, dim=-1)
-        return mean, F.softplus(raw_std) + self.min_std
+        mean_raw, raw_std = out.chunk(2, dim=-1)
+        return self.bounds(mean_raw, raw_std)
 
 
 class LatentRollout(NamedTuple):
@@ -159,6 +161,9 @@ class LatentModel(nn.Module):
         only; 32x32 images use the first three)
     :param min_std: the floor on the std of the latent Gaussians (z1's prior and posterior, z2's): 1e-5 in the reference
         code, where a prior std at the floor lets one latent excursion make a KL of 1e10 or more
+    :param max_std: the ceiling on their std (None in the reference code: ``softplus(raw) + min_std``, unbounded)
+    :param mean_bound: the bound on their means' absolute value (None in the reference code). With both bounds every
+        latent stays within ``mean_bound + max_std * |noise|`` (``GaussianBounds``)
     """
 
     def __init__(
@@ -175,6 +180,8 @@ class LatentModel(nn.Module):
         cost_positive_weight: float = 100.0,
         image_channels: tuple[int, ...] = THESIS_IMAGE_CHANNELS,
         min_std: float = STD_EPS,
+        max_std: float | None = None,
+        mean_bound: float | None = None,
     ) -> None:
         super().__init__()
         self.image_channels = tuple(int(width) for width in image_channels)
@@ -193,6 +200,7 @@ class LatentModel(nn.Module):
         self.reward_loss_weight = reward_loss_weight
         self.cost_loss_weight = cost_loss_weight
         self.cost_positive_weight = cost_positive_weight
+        bounds = GaussianBounds(min_std, max_std, mean_bound)
 
         if len(self.observation_shape) == 3:
             channels, height, width = self.observation_shape
@@ -211,15 +219,15 @@ class LatentModel(nn.Module):
             raise ValueError(f"observation_shape must be (C, H, W) or (D,), got {self.observation_shape}")
 
         # p(z2_0 | z1_0) = q(z2_0 | z1_0)
-        self.z2_init = GaussianMLP(z1_dim, z2_dim, hidden_units, min_std)
+        self.z2_init = GaussianMLP(z1_dim, z2_dim, hidden_units, bounds)
         # p(z1_{t+1} | z2_t, a_t)
-        self.z1_prior = GaussianMLP(z2_dim + action_dim, z1_dim, hidden_units, min_std)
+        self.z1_prior = GaussianMLP(z2_dim + action_dim, z1_dim, hidden_units, bounds)
         # p(z2_{t+1} | z1_{t+1}, z2_t, a_t) = q(z2_{t+1} | ...)
-        self.z2_transition = GaussianMLP(z1_dim + z2_dim + action_dim, z2_dim, hidden_units, min_std)
+        self.z2_transition = GaussianMLP(z1_dim + z2_dim + action_dim, z2_dim, hidden_units, bounds)
         # q(z1_0 | f_0)
-        self.z1_posterior_init = GaussianMLP(feature_dim, z1_dim, hidden_units, min_std)
+        self.z1_posterior_init = GaussianMLP(feature_dim, z1_dim, hidden_units, bounds)
         # q(z1_{t+1} | f_{t+1}, z2_t, a_t)
-        self.z1_posterior = GaussianMLP(feature_dim + z2_dim + action_dim, z1_dim, hidden_units, min_std)
+        self.z1_posterior = GaussianMLP(feature_dim + z2_dim + action_dim, z1_dim, hidden_units, bounds)
 
         transition_dim = 2 * self.z_dim + action_dim
         # p(r_t | z_t, a_t, z_{t+1})

@@ -45,6 +45,9 @@ class LatentPolicy(BasePolicy):
     :param image_channels: output channels of the conv encoder's four stride-2 layers, mirrored by the decoder; the
         thesis's (32, 64, 128, 256) by default. Narrower convolutions are most of what makes a pixel update cheap
     :param latent_min_std: the floor on the std of the latent Gaussians (1e-5 in the thesis code)
+    :param latent_max_std: the ceiling on their std (None, the thesis code's: none)
+    :param latent_mean_bound: the bound on their means' absolute value (None, the thesis code's: none). With a ceiling
+        and a bound the latents cannot run away (see ``GaussianBounds``)
     :param latent_learning_rate: Adam step size of the latent model
     :param normalize_images: divide uint8 images by 255
     :param normalize_vectors: standardise vector observations with the mean and std of the warm-up data (set once by
@@ -81,6 +84,8 @@ class LatentPolicy(BasePolicy):
         cost_positive_weight: float = 100.0,
         image_channels: tuple[int, ...] = THESIS_IMAGE_CHANNELS,
         latent_min_std: float = STD_EPS,
+        latent_max_std: float | None = None,
+        latent_mean_bound: float | None = None,
         latent_learning_rate: float = 1e-4,
         normalize_images: bool = True,
         normalize_vectors: bool = True,
@@ -112,6 +117,8 @@ class LatentPolicy(BasePolicy):
         self.cost_positive_weight = cost_positive_weight
         self.image_channels = tuple(image_channels)
         self.latent_min_std = latent_min_std
+        self.latent_max_std = latent_max_std
+        self.latent_mean_bound = latent_mean_bound
         self.latent_learning_rate = latent_learning_rate
         self.normalize_vectors = normalize_vectors
         self._scale_images = normalize_images and is_image_space(observation_space)
@@ -135,6 +142,8 @@ class LatentPolicy(BasePolicy):
             cost_positive_weight=self.cost_positive_weight,
             image_channels=self.image_channels,
             min_std=self.latent_min_std,
+            max_std=self.latent_max_std,
+            mean_bound=self.latent_mean_bound,
         )
         z_dim = self.latent.z_dim
         self.actor = LatentActor(z_dim, self.action_dim, self.hidden_units)
@@ -177,6 +186,8 @@ class LatentPolicy(BasePolicy):
                 cost_positive_weight=self.cost_positive_weight,
                 image_channels=self.image_channels,
                 latent_min_std=self.latent_min_std,
+                latent_max_std=self.latent_max_std,
+                latent_mean_bound=self.latent_mean_bound,
                 latent_learning_rate=self.latent_learning_rate,
                 normalize_vectors=self.normalize_vectors,
                 optimizer_class=self.optimizer_class,

@@ -330,6 +330,57 @@ def test_latent_min_std_keeps_the_kl_finite_when_the_prior_collapses():
     assert math.isfinite(kls[0.1]) and kls[0.1] < 1e5
 
 
-def test_latent_min_std_must_be_positive():
-    with pytest.raises(ValueError, match="min_std"):
-        make_model((5,), min_std=0.0)
+def test_latent_bounds_keep_latents_and_kl_bounded_when_the_networks_run_away():
+    """Every latent Gaussian's last layer driven to huge outputs: unbounded, the latents and the KL follow (and the
+    gradients overflow); bounded, |z| stays within mean_bound + max_std * |noise| and the KL within GaussianBounds's
+    bound, with finite gradients."""
+    bounds = {"min_std": 0.1, "max_std": 2.0, "mean_bound": 10.0}
+    stats = {}
+    for name, kwargs in (("unbounded", {"min_std": 0.1}), ("bounded", bounds)):
+        torch.manual_seed(0)
+        model = make_model((5,), **kwargs)
+        with torch.no_grad():
+            for mlp in (model.z1_posterior_init, model.z1_posterior, model.z1_prior, model.z2_init, model.z2_transition):
+                mlp.net[-1].weight.mul_(1e3)
+                mlp.net[-1].bias.fill_(1e3)
+            model.z1_prior.net[-1].bias[:Z1] = -1e3  # the prior's mean far from the posterior's
+        observations, actions, rewards, costs, terminated = make_batch((5,))
+        total, info = model.loss(observations, actions, rewards, costs, terminated)
+        total.backward()
+        stats[name] = info
+        finite = all(torch.isfinite(param.grad).all() for param in model.parameters())
+        assert finite == (name == "bounded")  # unbounded, the image loss overflows float32
+    assert stats["unbounded"]["z_abs_max"] > 1e6 and stats["unbounded"]["kl"] > 1e20
+    assert stats["bounded"]["prior_std_min"] >= 0.1 and stats["bounded"]["z_abs_max"] < 10.0 + 2.0 * 6.0
+    kl_bound_per_dim = math.log(2.0 / 0.1) + (2.0**2 + 4 * 10.0**2) / (2 * 0.1**2)
+    assert 1e3 < stats["bounded"]["kl"] <= (STEPS + 1) * Z1 * kl_bound_per_dim
+
+
+def test_fused_rollout_and_autograd_agree_with_bounded_latents():
+    """The bounded mean and std take the hand-written backward pass (fused rollout) as autograd's: same loss and gradients."""
+    torch.manual_seed(5)
+    model = make_model((5,), min_std=0.1, max_std=0.7, mean_bound=0.3).double()
+    observations, actions, rewards, costs, terminated = (value.double() for value in make_batch((5,)))
+
+    def loss_and_grads(compiling: bool) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        torch.manual_seed(6)
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(torch.compiler, "is_compiling", lambda: compiling)  # compiling: autograd records each step
+            loss, info = model.loss(observations, actions, rewards, costs, terminated)
+        assert info["z_abs_max"] > 0.2  # the means' tanh is well away from the identity
+        return loss, list(torch.autograd.grad(loss, list(model.parameters())))
+
+    fused_loss, fused_grads = loss_and_grads(compiling=False)
+    reference_loss, reference_grads = loss_and_grads(compiling=True)
+    torch.testing.assert_close(fused_loss, reference_loss)
+    for fused_grad, reference_grad in zip(fused_grads, reference_grads, strict=True):
+        torch.testing.assert_close(fused_grad, reference_grad, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [({"min_std": 0.0}, "min_std"), ({"min_std": 0.1, "max_std": 0.1}, "max_std"), ({"mean_bound": -1.0}, "mean_bound")],
+)
+def test_latent_bounds_are_checked(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        make_model((5,), **kwargs)
