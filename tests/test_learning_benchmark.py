@@ -123,6 +123,13 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     windows = [row.split("|")[1].strip() for row in rows]
     assert windows == ["1", "2", "4"]  # the two asked for and the preset's training window
 
+    command = [sys.executable, "benchmarks/diagnostics/latent_scale.py", str(tmp_path / "runs" / "seed3"), "--windows", "20"]
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)
+    assert result.returncode == 0, result.stdout + result.stderr
+    z1_rows = [line for line in result.stdout.splitlines() if line.count("|") == 4 and line.split("|")[0].strip().isdigit()]
+    assert len(z1_rows) == 16  # the cpu preset's z1_dim
+    assert "z2 recurrence stretch (Jacobian spectral norm): median" in result.stdout
+
 
 def test_reconstruction_speed_probes_the_latent_model_at_each_checkpoint(tmp_path) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
