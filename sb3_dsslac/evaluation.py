@@ -170,6 +170,13 @@ THESIS_DSSLAC_SCORES: dict[str, tuple[float, float]] = {
     "DoggoGoal1": (0.577, 0.0),
     "PointGoal2": (0.014, 0.045),
 }
+# LAMBDA's normalised (Jr_bar, Jc_bar) in the same table (As et al., 2022; 1M simulator steps, 2M for DoggoGoal1).
+THESIS_LAMBDA_SCORES: dict[str, tuple[float, float]] = {
+    "PointGoal1": (1.077, 0.0),
+    "CarGoal1": (1.284, 0.0),
+    "DoggoGoal1": (5.400, 0.0),
+    "PointGoal2": (0.902, 0.0),
+}
 
 
 def normalised_scores(

@@ -9,7 +9,13 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from sb3_dsslac.evaluation import PPO_REFERENCE, THESIS_DSSLAC_SCORES, eval_policy_name, normalised_scores
+from sb3_dsslac.evaluation import (
+    PPO_REFERENCE,
+    THESIS_DSSLAC_SCORES,
+    THESIS_LAMBDA_SCORES,
+    eval_policy_name,
+    normalised_scores,
+)
 from sb3_dsslac.runs import CONFIG_FILE, load_config
 
 
@@ -117,34 +123,48 @@ def plot_learning_curves(runs: list[RunResults], path: str | Path) -> Path:
     return path
 
 
-def score_table(runs: list[RunResults]) -> pd.DataFrame:
+def score_table(runs: list[RunResults], late_evaluations: int = 3) -> pd.DataFrame:
     """
-    The final evaluation of each env's runs: mean episode reward Jr and cost Jc (over episodes, then runs), their
-    normalised scores (Eq. 5.1, against the unconstrained PPO of ``PPO_REFERENCE``) and the thesis's DS-SLAC scores.
-    Envs without a PPO reference get NaN scores. ``eval`` is the runs' evaluation policy ("stochastic", the thesis's
-    protocol, or "deterministic"; "mixed" when the runs of an env differ).
+    Each env's runs at the final evaluation and over their last ``late_evaluations`` evaluations pooled (``*_late``:
+    less of one evaluation's noise): mean episode reward Jr and cost Jc (over episodes, then runs), their normalised
+    scores (Eq. 5.1, against the unconstrained PPO of ``PPO_REFERENCE``), and the thesis's Table 5.1 scores of DS-SLAC
+    and LAMBDA. Envs without a PPO reference get NaN scores. ``eval`` is the runs' evaluation policy ("stochastic", the
+    thesis's protocol, or "deterministic"; "mixed" when the runs of an env differ).
     """
     rows = []
     for env, env_runs in _by_env(runs).items():
         task = task_name(env)
-        reward = float(np.mean([run.rewards[-1].mean() for run in env_runs]))
-        cost = float(np.mean([run.costs[-1].mean() for run in env_runs]))
         budget = env_runs[0].cost_limit
-        scores = normalised_scores(reward, cost, *PPO_REFERENCE[task], budget) if task in PPO_REFERENCE else (np.nan, np.nan)
+        levels = {}
+        for suffix, last in (("", 1), ("_late", late_evaluations)):
+            reward = float(np.mean([run.rewards[-last:].mean() for run in env_runs]))
+            cost = float(np.mean([run.costs[-last:].mean() for run in env_runs]))
+            normalised = (np.nan, np.nan)
+            if task in PPO_REFERENCE:
+                normalised = normalised_scores(reward, cost, *PPO_REFERENCE[task], budget)
+            levels[suffix] = (reward, cost, *normalised)
         thesis = THESIS_DSSLAC_SCORES.get(task, (np.nan, np.nan))
+        lambda_scores = THESIS_LAMBDA_SCORES.get(task, (np.nan, np.nan))
         policies = {run.eval_policy for run in env_runs}
+        final, late = levels[""], levels["_late"]
         rows.append(
             {
                 "task": task,
                 "runs": len(env_runs),
                 "sim_steps": int(min(run.sim_steps[-1] for run in env_runs)),
-                "Jr": reward,
-                "Jc": cost,
+                "Jr": final[0],
+                "Jc": final[1],
                 "budget": budget,
-                "Jr_bar": scores[0],
-                "Jc_bar": scores[1],
+                "Jr_bar": final[2],
+                "Jc_bar": final[3],
+                "Jr_late": late[0],
+                "Jc_late": late[1],
+                "Jr_bar_late": late[2],
+                "Jc_bar_late": late[3],
                 "thesis_Jr_bar": thesis[0],
                 "thesis_Jc_bar": thesis[1],
+                "lambda_Jr_bar": lambda_scores[0],
+                "lambda_Jc_bar": lambda_scores[1],
                 "eval": policies.pop() if len(policies) == 1 else "mixed",
             }
         )
@@ -179,7 +199,8 @@ def report(run_dirs: list[str | Path], out: str | Path) -> str:
     markdown = to_markdown(table)
     note = (
         "Jr_bar = Jr / Jr_PPO, Jc_bar = max(0, Jc - d) / max(1e-6, Jc_PPO - d) (thesis Eq. 5.1); "
-        "thesis_* are DS-SLAC's Table 5.1 numbers (1M simulator steps, stochastic evaluation); "
+        "*_late: the last 3 evaluations' episodes pooled; "
+        "thesis_* and lambda_* are DS-SLAC's and LAMBDA's Table 5.1 numbers (1M simulator steps, stochastic evaluation); "
         f"eval: the evaluation policy of these runs ({', '.join(sorted({run.eval_policy for run in runs}))})."
     )
     (out / "scores.md").write_text(f"{markdown}\n\n{note}\n")

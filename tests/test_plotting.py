@@ -56,7 +56,21 @@ def test_score_table_averages_seeds_at_the_final_evaluation(tmp_path: Path) -> N
     assert row["Jr"] == pytest.approx(20.0) and row["Jc"] == pytest.approx(25.0)
     assert row["Jr_bar"] == pytest.approx(20.0 / PPO_REFERENCE["PointGoal1"][0]) and row["Jc_bar"] == 0.0
     assert (row["thesis_Jr_bar"], row["thesis_Jc_bar"]) == (1.237, 0.0)
+    assert (row["lambda_Jr_bar"], row["lambda_Jc_bar"]) == (1.077, 0.0)
     assert np.isnan(table.loc["MyEnv-v0", "Jr_bar"]) and np.isnan(table.loc["MyEnv-v0", "thesis_Jr_bar"])
+
+
+def test_score_table_pools_the_last_evaluations(tmp_path: Path) -> None:
+    env = "SafetyGym/PointGoal1-v0"
+    rewards, costs = (
+        np.array([[0.0, 0.0], [4.0, 6.0], [8.0, 10.0], [12.0, 14.0]]),
+        np.array([[90.0] * 2, [60.0] * 2, [30.0] * 2, [0.0] * 2]),
+    )
+    table = score_table([load_run(fake_run(tmp_path / "seed0", env, rewards, costs))], late_evaluations=3)
+    row = table.set_index("task").loc["PointGoal1"]
+    assert (row["Jr"], row["Jc"]) == (13.0, 0.0)
+    assert (row["Jr_late"], row["Jc_late"]) == (9.0, 30.0)  # the last 3 evaluations' 6 episodes
+    assert row["Jc_bar_late"] == pytest.approx((30.0 - 25.0) / (PPO_REFERENCE["PointGoal1"][1] - 25.0))
 
 
 def test_report_writes_the_files(tmp_path: Path) -> None:
