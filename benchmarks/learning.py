@@ -356,10 +356,11 @@ def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndar
             f"| DS-SLAC, seed {seed} | {int(run.sim_steps[-1]):,} | {level[0]:.2f} | {level[1]:.1f} | {level[2]:.2f} "
             f"| {level[3]:.1f} | {wall:.1f} | {cpu:.1f} |"
         )
-    means, stds = np.mean(levels, axis=0), np.std(levels, axis=0)
+    means = np.mean(levels, axis=0)
+    stds = np.std(levels, axis=0, ddof=1) if len(levels) > 1 else np.zeros_like(means)
     lines.append(
-        f"| DS-SLAC, mean ± std of {len(levels)} seeds | | {means[0]:.2f} ± {stds[0]:.2f} | {means[1]:.1f} ± {stds[1]:.1f} "
-        f"| {means[2]:.2f} ± {stds[2]:.2f} | {means[3]:.1f} ± {stds[3]:.1f} | | |"
+        f"| DS-SLAC, mean ± sample std of {len(levels)} seeds | | {means[0]:.2f} ± {stds[0]:.2f} "
+        f"| {means[1]:.1f} ± {stds[1]:.1f} | {means[2]:.2f} ± {stds[2]:.2f} | {means[3]:.1f} ± {stds[3]:.1f} | | |"
     )
     lines.append(f"| random policy ({len(random[0])} episodes) | | {random[0].mean():.2f} | {random[1].mean():.1f} | | | | |")
     first = next(iter(runs.values()))
@@ -372,6 +373,34 @@ def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndar
         "twice, the steps since its last checkpoint; the time account below counts each step once."
     )
     return "\n".join(lines)
+
+
+# A logged update's KL above this is a latent-model spike (normal runs sit at 40-70)
+SPIKE_KL = 1_000.0
+
+
+def health_table(runs_root: Path, seeds: list[int]) -> str:
+    """
+    Markdown: each seed's latent-model health from its ``progress.csv``: the largest KL of an update (``train/kl_max``,
+    the extreme over every update; ``train/kl``, a burst mean, in runs from before it was logged), how many logged
+    rows passed ``SPIKE_KL``, the largest |z|, and the multiplier's final value.
+    """
+    import pandas as pd
+
+    lines = [
+        f"| seed | largest KL of an update | logged rows with KL > {SPIKE_KL:,.0f} | largest abs z | final multiplier |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for seed in seeds:
+        progress = pd.read_csv(runs_root / f"seed{seed}" / "progress.csv")
+        kl = progress["train/kl_max" if "train/kl_max" in progress else "train/kl"].dropna()
+        if kl.empty:
+            continue
+        z = progress["train/z_abs_max"].max() if "train/z_abs_max" in progress else float("nan")
+        multiplier = progress["train/lagrange_multiplier"].dropna()
+        final = f"{multiplier.iloc[-1]:.3f}" if not multiplier.empty else "-"
+        lines.append(f"| {seed} | {kl.max():.4g} | {int((kl > SPIKE_KL).sum())} | {z:.3g} | {final} |")
+    return "" if len(lines) == 2 else "The latent model's health, from each seed's `progress.csv`:\n\n" + "\n".join(lines)
 
 
 def time_account_table(runs_root: Path, seeds: list[int]) -> str:
@@ -451,8 +480,8 @@ def main() -> None:
     multipliers = {seed: read_multiplier(runs_root / f"seed{seed}") for seed in args.seeds}
     plot_seeds(out / "curves.png", runs, random, multipliers, title)
     table = summary_table(runs, random, runs_root)
-    account = time_account_table(runs_root, args.seeds)
-    table += f"\n\n{account}" if account else ""
+    for extra in (health_table(runs_root, args.seeds), time_account_table(runs_root, args.seeds)):
+        table += f"\n\n{extra}" if extra else ""
     (out / "table.md").write_text(f"{title}\n\n{table}\n")
     print(f"\n{title}\n\n{table}\n\nwrote {out}/seed<S>.csv, curves.png, table.md")
     if args.obs_type == "pixels" and not args.no_pictures:

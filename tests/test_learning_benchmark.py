@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch as th
 
@@ -34,7 +35,7 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
     for name in ("seed0.csv", "seed1.csv", "curves.png", "table.md", "random_policy.json"):
         assert (tmp_path / name).is_file(), name
     table = (tmp_path / "table.md").read_text()
-    assert "DS-SLAC, seed 1 | 200 |" in table and "mean ± std of 2 seeds" in table and "stochastic policy" in table
+    assert "DS-SLAC, seed 1 | 200 |" in table and "mean ± sample std of 2 seeds" in table and "stochastic policy" in table
     # The late level pools the last 3 evaluations' episodes (here both: at 100 and 200 simulator steps)
     evaluations = np.load(tmp_path / "runs" / "seed0" / "evaluations.npz")
     row = next(line for line in table.splitlines() if "seed 0" in line).strip("|").split("|")
@@ -42,8 +43,13 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
         round(float(evaluations["results"][-1].mean()), 2), round(float(evaluations["costs"][-1].mean()), 1),
         round(float(evaluations["results"].mean()), 2), round(float(evaluations["costs"].mean()), 1),
     ]  # fmt: skip
+    # The latent model's health: the largest KL of an update, read from progress.csv
+    health = next(line for line in table.splitlines() if line.startswith("| 0 | ") and line.count("|") == 6)
+    largest_kl = float(health.split("|")[2])
+    kl_max = pd.read_csv(tmp_path / "runs" / "seed0" / "progress.csv")["train/kl_max"].max()
+    assert largest_kl == pytest.approx(kl_max, rel=1e-3)
     # Where each seed's minutes went, from its time_account.json: every activity and the rest add up to its wall time
-    assert "by activity" in table and table.count("\n| 0 | ") == 1 and table.count("\n| 1 | ") == 1
+    assert "by activity" in table and table.count("\n| 0 | ") == 2 and table.count("\n| 1 | ") == 2  # health, time
     account = json.loads((tmp_path / "runs" / "seed0" / "time_account.json").read_text())
     assert account["updates"] > 0 and account["acting"] > 0 and account["evaluation"] > 0 and account["checkpoints"] > 0
     parts = sum(value for name, value in account.items() if name not in ("wall", "cpu"))
@@ -62,7 +68,7 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
     assert "seed 1: resuming" in output and "seed 2: starting" in output
     assert (runs / "seed0" / "model.zip").stat().st_mtime_ns == finished
     assert (runs / "seed1" / "model.zip").is_file() and (runs / "seed2" / "model.zip").is_file()
-    assert "mean ± std of 3 seeds" in (tmp_path / "table.md").read_text()
+    assert "mean ± sample std of 3 seeds" in (tmp_path / "table.md").read_text()
 
     # A finished seed asked for more simulator steps continues from its last checkpoint, its evaluations kept
     output = run_benchmark(tmp_path, "0", sim_steps=300)
