@@ -39,8 +39,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
 from sb3_dsslac import DSSLAC, CostEvalCallback
-from sb3_dsslac.envs import make_env
 from sb3_dsslac.beliefs import episode_beliefs, mean_cost_probabilities, plot_beliefs
+from sb3_dsslac.envs import make_env
 from sb3_dsslac.plotting import RunResults, load_run, task_name
 from sb3_dsslac.presets import preset_hyperparams
 from sb3_dsslac.rollouts import evaluate
@@ -379,11 +379,11 @@ def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndar
 SPIKE_KL = 1_000.0
 
 
-def health_table(runs_root: Path, seeds: list[int]) -> str:
+def health_table(runs_root: Path, multipliers: dict[int, tuple[np.ndarray, np.ndarray]]) -> str:
     """
     Markdown: each seed's latent-model health from its ``progress.csv``: the largest KL of an update (``train/kl_max``,
     the extreme over every update; ``train/kl``, a burst mean, in runs from before it was logged), how many logged
-    rows passed ``SPIKE_KL``, the largest |z|, and the multiplier's final value.
+    rows passed ``SPIKE_KL``, the largest |z|, and the multiplier's final value (``multipliers``, from ``read_multiplier``).
     """
     import pandas as pd
 
@@ -391,14 +391,13 @@ def health_table(runs_root: Path, seeds: list[int]) -> str:
         f"| seed | largest KL of an update | logged rows with KL > {SPIKE_KL:,.0f} | largest abs z | final multiplier |",
         "|---|---:|---:|---:|---:|",
     ]
-    for seed in seeds:
+    for seed, (_, multiplier) in multipliers.items():
         progress = pd.read_csv(runs_root / f"seed{seed}" / "progress.csv")
         kl = progress["train/kl_max" if "train/kl_max" in progress else "train/kl"].dropna()
         if kl.empty:
             continue
         z = progress["train/z_abs_max"].max() if "train/z_abs_max" in progress else float("nan")
-        multiplier = progress["train/lagrange_multiplier"].dropna()
-        final = f"{multiplier.iloc[-1]:.3f}" if not multiplier.empty else "-"
+        final = f"{multiplier[-1]:.3f}" if multiplier.size else "-"
         lines.append(f"| {seed} | {kl.max():.4g} | {int((kl > SPIKE_KL).sum())} | {z:.3g} | {final} |")
     return "" if len(lines) == 2 else "The latent model's health, from each seed's `progress.csv`:\n\n" + "\n".join(lines)
 
@@ -480,7 +479,7 @@ def main() -> None:
     multipliers = {seed: read_multiplier(runs_root / f"seed{seed}") for seed in args.seeds}
     plot_seeds(out / "curves.png", runs, random, multipliers, title)
     table = summary_table(runs, random, runs_root)
-    for extra in (health_table(runs_root, args.seeds), time_account_table(runs_root, args.seeds)):
+    for extra in (health_table(runs_root, multipliers), time_account_table(runs_root, args.seeds)):
         table += f"\n\n{extra}" if extra else ""
     (out / "table.md").write_text(f"{title}\n\n{table}\n")
     print(f"\n{title}\n\n{table}\n\nwrote {out}/seed<S>.csv, curves.png, table.md")

@@ -7,8 +7,8 @@ and std's functions and a reparameterised sample per MLP, every linear layer wit
 backpropagating adds each weight's per-step gradients one at a time. Here the forward pass computes the same arithmetic
 with each weight transposed once per rollout and the inputs that do not recur (the frames' features, the actions)
 multiplied for all steps at once. The backward pass carries only the recurrent gradients step by step; the gradient of
-every weight, bias, feature and action is one matrix product (or sum) over all steps. Same math, far fewer ops: what a GPU pays
-for in kernel launches when the update is eager.
+every weight, bias, feature and action is one matrix product (or sum) over all steps. Same math, far fewer ops: what a
+GPU pays for in kernel launches when the update is eager.
 
 The layout of both MLPs is ``GaussianMLP``'s: linear layers with ELU between them; the last one's output is
 ``[mean_raw, raw]``, made a mean and a std by the module's ``bounds`` (``GaussianBounds``). z1's posterior takes
@@ -267,9 +267,10 @@ def posterior_steps(
     transition_params = [param for layer in linear_layers(z2_transition) for param in (layer.weight, layer.bias)]
     bounds = (z1_posterior.bounds, z2_transition.bounds)
     if not torch.is_grad_enabled():
-        return _rollout(features, actions, first, z1_noise, z2_noise, posterior_params, transition_params, bounds, keep=False)[
-            0
-        ]
+        outputs, _ = _rollout(
+            features, actions, first, z1_noise, z2_noise, posterior_params, transition_params, bounds, keep=False
+        )
+        return outputs
     return _PosteriorSteps.apply(
         features, actions, *first, z1_noise, z2_noise, len(posterior_params), bounds, *posterior_params, *transition_params
     )

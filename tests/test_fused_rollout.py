@@ -56,9 +56,11 @@ def test_fused_rollout_without_gradients_gives_the_same_latents() -> None:
         torch.testing.assert_close(with_grad.detach(), without_grad, rtol=0, atol=0)
 
 
-def test_latent_loss_is_the_same_through_the_fused_and_the_autograd_rollout() -> None:
+@pytest.mark.parametrize("bounds", [{}, {"min_std": 0.1, "max_std": 0.7, "mean_bound": 0.3}], ids=["thesis", "bounded"])
+def test_latent_loss_is_the_same_through_the_fused_and_the_autograd_rollout(bounds) -> None:
+    # Bounded, the means' tanh and the stds' sigmoid take the hand-written backward pass as autograd does
     torch.manual_seed(2)
-    model = LatentModel((3, 32, 32), 2, feature_dim=16, z1_dim=4, z2_dim=8, hidden_units=(16, 16)).double()
+    model = LatentModel((3, 32, 32), 2, feature_dim=16, z1_dim=4, z2_dim=8, hidden_units=(16, 16), **bounds).double()
     observations = torch.rand(2, 4, 3, 32, 32, dtype=torch.float64)
     actions, rewards = torch.rand(2, 3, 2, dtype=torch.float64) * 2 - 1, torch.randn(2, 3, dtype=torch.float64)
     costs, terminated = (rewards > 0).double(), torch.zeros(2, 3, dtype=torch.float64)
@@ -68,9 +70,11 @@ def test_latent_loss_is_the_same_through_the_fused_and_the_autograd_rollout() ->
         if compiling:  # what the loss runs while torch.compile traces it: autograd records each step
             with pytest.MonkeyPatch.context() as patch:
                 patch.setattr(torch.compiler, "is_compiling", lambda: True)
-                loss, _ = model.loss(observations, actions, rewards, costs, terminated)
+                loss, info = model.loss(observations, actions, rewards, costs, terminated)
         else:
-            loss, _ = model.loss(observations, actions, rewards, costs, terminated)
+            loss, info = model.loss(observations, actions, rewards, costs, terminated)
+        if bounds:
+            assert info["z_abs_max"] > 0.2  # the means' tanh is well away from the identity
         return loss, list(torch.autograd.grad(loss, list(model.parameters())))
 
     fused_loss, fused_grads = loss_and_grads(compiling=False)
