@@ -8,7 +8,10 @@ it continues each unfinished seed from its last checkpoint and reuses the finish
 for more ``--sim-steps`` than it ran is extended from its last checkpoint. It writes, under
 ``benchmarks/results/learning_<task>_<obs>_<preset>/`` (plus ``_<key>_<value>`` per ``--hyperparams`` override), a CSV
 per seed, ``curves.png`` (reward and cost against simulator steps: each seed, their mean, the budget and the random
-policy's level; and each seed's Lagrange multiplier) and ``table.md`` (with each seed's wall and CPU minutes). On
+policy's level; and each seed's Lagrange multiplier), ``table.md`` (with each seed's wall and CPU minutes and the
+normalised scores of thesis Eq. 5.1) and ``seed<S>_run/``, each seed's record without its weights (``config.yaml``,
+``progress.csv``, ``evaluations.npz``, ``time_account.json``, ``wall_minutes.json``: small enough to commit, and what
+``python -m sb3_dsslac plot`` reads to compare tasks). On
 pixels it also shows what the first seed's agent sees and believes: ``beliefs.png`` (frames beside the latent model's
 reconstructions, with the predicted probability of cost) and ``episode.mp4`` (a deterministic evaluation episode,
 first-person beside third-person).
@@ -41,7 +44,7 @@ import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
 from sb3_dsslac import DSSLAC, CostEvalCallback
 from sb3_dsslac.beliefs import episode_beliefs, mean_cost_probabilities, plot_beliefs
 from sb3_dsslac.envs import make_env
-from sb3_dsslac.plotting import RunResults, load_run, task_name
+from sb3_dsslac.plotting import RunResults, load_run, score_table, task_name
 from sb3_dsslac.presets import preset_hyperparams
 from sb3_dsslac.rollouts import evaluate
 from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint, load_config, read_time_account
@@ -158,6 +161,8 @@ def plot(path: Path, curve: LearningCurve, random: tuple[np.ndarray, np.ndarray]
 
 RUNS_DIR = "runs"
 TIMING_FILE = "wall_minutes.json"
+# A run folder's files that make its record: everything but the weights, the replay buffer and the TensorBoard events
+RECORD_FILES = ("config.yaml", "progress.csv", "evaluations.npz", "time_account.json", TIMING_FILE)
 
 
 def seed_state(run_dir: Path, sim_steps: int) -> str:
@@ -253,6 +258,14 @@ def children_cpu_seconds() -> float:
     """User + system seconds of every child process reaped so far."""
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     return usage.ru_utime + usage.ru_stime
+
+
+def keep_record(run_dir: Path, record_dir: Path) -> None:
+    """Copy the ``RECORD_FILES`` the run has into ``record_dir`` (created), replacing older copies."""
+    record_dir.mkdir(parents=True, exist_ok=True)
+    for name in RECORD_FILES:
+        if (run_dir / name).is_file():
+            shutil.copy2(run_dir / name, record_dir / name)
 
 
 def random_level(args: argparse.Namespace, out: Path, env_kwargs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
@@ -375,6 +388,27 @@ def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndar
     return "\n".join(lines)
 
 
+def normalised_line(runs: dict[int, RunResults]) -> str:
+    """
+    A sentence with the seeds' normalised (Jr, Jc) of thesis Eq. 5.1 over the last evaluations and at the final one,
+    beside the thesis's DS-SLAC and LAMBDA (Table 5.1, 1M simulator steps); empty for a task without a PPO reference.
+    """
+    row = score_table(list(runs.values()), late_evaluations=LATE_EVALUATIONS).iloc[0]
+    if np.isnan(row["Jr_bar"]):
+        return ""
+
+    def pair(reward: float, cost: float) -> str:
+        return "-" if np.isnan(reward) else f"({reward:.3f}, {cost:.3f})"
+
+    return (
+        f"Normalised (Jr, Jc) of thesis Eq. 5.1 (against the unconstrained PPO of As et al., 2022), mean over seeds: "
+        f"{pair(row['Jr_bar_late'], row['Jc_bar_late'])} over the last {LATE_EVALUATIONS} evaluations, "
+        f"{pair(row['Jr_bar'], row['Jc_bar'])} at the final one, at {int(row['sim_steps']):,} simulator steps; "
+        f"the thesis's DS-SLAC {pair(row['thesis_Jr_bar'], row['thesis_Jc_bar'])} and LAMBDA "
+        f"{pair(row['lambda_Jr_bar'], row['lambda_Jc_bar'])} at 1M (Table 5.1)."
+    )
+
+
 # A logged update's KL above this is a latent-model spike (normal runs sit at 40-70)
 SPIKE_KL = 1_000.0
 
@@ -474,12 +508,13 @@ def main() -> None:
     random = random_level(args, out, load_config(runs_root / f"seed{args.seeds[0]}").env_kwargs)
     for seed, run in runs.items():
         write_seed_csv(out / f"seed{seed}.csv", run)
+        keep_record(runs_root / f"seed{seed}", out / f"seed{seed}_run")
     overrides = f" with {' '.join([*args.env_kwargs, *args.hyperparams])}" if args.env_kwargs or args.hyperparams else ""
     title = f"{task_name(args.env)} ({args.obs_type}), preset {args.preset}{overrides}, {len(runs)} seeds"
     multipliers = {seed: read_multiplier(runs_root / f"seed{seed}") for seed in args.seeds}
     plot_seeds(out / "curves.png", runs, random, multipliers, title)
     table = summary_table(runs, random, runs_root)
-    for extra in (health_table(runs_root, multipliers), time_account_table(runs_root, args.seeds)):
+    for extra in (normalised_line(runs), health_table(runs_root, multipliers), time_account_table(runs_root, args.seeds)):
         table += f"\n\n{extra}" if extra else ""
     (out / "table.md").write_text(f"{title}\n\n{table}\n")
     print(f"\n{title}\n\n{table}\n\nwrote {out}/seed<S>.csv, curves.png, table.md")

@@ -11,6 +11,8 @@ import pandas as pd
 import pytest
 import torch as th
 
+from sb3_dsslac.plotting import RunResults, load_run
+
 REPO = Path(__file__).resolve().parents[1]
 TINY = [
     "--env", "tests.registered_envs:HazardPoint-v0", "--preset", "cpu", "--obs-type", "state", "--sim-steps", "200",
@@ -55,6 +57,11 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
     parts = sum(value for name, value in account.items() if name not in ("wall", "cpu"))
     assert abs(parts - account["wall"]) < 0.3
     assert len((tmp_path / "seed0.csv").read_text().splitlines()) == 3  # header and evaluations at 100 and 200
+    # Each seed's record (no weights) is kept beside the table, and `plot` reads it as it reads the run folder
+    record = tmp_path / "seed0_run"
+    files = {"config.yaml", "progress.csv", "evaluations.npz", "time_account.json", "wall_minutes.json"}
+    assert {path.name for path in record.iterdir()} == files
+    assert np.array_equal(load_run(record).rewards, evaluations["results"])
 
     # A stop after the last checkpoint but before the final save: seed 1 resumes, seed 0 is reused untouched
     runs = tmp_path / "runs"
@@ -74,6 +81,28 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
     output = run_benchmark(tmp_path, "0", sim_steps=300)
     assert "seed 0: resuming" in output and "--sim-steps 300" in output
     assert [line.split(",")[0] for line in (tmp_path / "seed0.csv").read_text().splitlines()[1:]] == ["100", "200", "300"]
+
+
+def test_the_table_gives_the_normalised_scores_beside_the_thesis(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    import learning
+
+    def run(rewards: list[float], costs: list[float]) -> RunResults:
+        return RunResults(
+            Path("."), "SafetyGym/PointGoal1-v0", 25.0, np.array([100_000, 200_000, 300_000, 400_000]),
+            np.array(rewards)[:, None], np.array(costs)[:, None], "stochastic",
+        )  # fmt: skip
+
+    runs = {0: run([0.0, 8.0, 10.0, 12.0], [60.0, 30.0, 20.0, 10.0]), 1: run([0.0, 2.0, 4.0, 6.0], [60.0, 40.0, 30.0, 35.0])}
+    line = learning.normalised_line(runs)
+    # Last 3 evaluations: reward (10 + 4) / 2 = 7, cost (20 + 35) / 2 = 27.5, over the budget of 25 by a 51.439th of
+    # (PPO's cost on PointGoal1 - 25); final: reward 9, cost 22.5, under the budget
+    late, final = f"({7 / 17.476:.3f}, {2.5 / 51.439:.3f})", f"({9 / 17.476:.3f}, 0.000)"
+    assert f"{late} over the last 3 evaluations, {final} at the final one, at 400,000 simulator steps" in line
+    assert "DS-SLAC (1.237, 0.000) and LAMBDA (1.077, 0.000) at 1M" in line
+    runs[0] = run([0.0, 8.0, 10.0, 12.0], [60.0, 30.0, 45.0, 45.0])
+    assert f"({9 / 17.476:.3f}, {15 / 51.439:.3f}) at the final one" in learning.normalised_line(runs)
+    assert learning.normalised_line({0: RunResults(**{**vars(runs[1]), "env": "tests.registered_envs:HazardPoint-v0"})}) == ""
 
 
 def test_a_failed_seed_does_not_stop_the_others(monkeypatch, tmp_path, capsys) -> None:
