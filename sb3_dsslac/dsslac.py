@@ -482,6 +482,11 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         """
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.updates.step.optimizers)
+        # Read at every burst, as SAC reads them at every update: a changed model.gamma or model.tau takes effect
+        # (a compiled update recompiles once for the new values)
+        step = self.updates.step
+        step.gamma, step.cost_gamma, step.tau = self.gamma, self.cost_gamma, self.tau
+        step.batch_size, step.latent_batch_size = batch_size, self.latent_batch_size
         if not self.latent_pretrained:
             with self.time_account.measure("latent_pretraining"):
                 self._pretrain_latent()

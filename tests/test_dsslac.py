@@ -78,6 +78,19 @@ def test_burst_extremes_hold_until_the_logger_writes(tmp_path) -> None:
     assert (logged["train/kl_max"], logged["train/prior_std_min"]) == (48.0, 0.2)
 
 
+def test_discount_polyak_factor_and_batch_sizes_changed_on_the_model_reach_the_updates() -> None:
+    model = small_model(HazardPointEnv())
+    model.learn(50)
+    critic, target = model.policy.critic, model.policy.critic_target
+    model.tau, model.gamma, model.batch_size, model.latent_batch_size = 0.0, 0.5, 5, 3
+    weights, targets = [p.clone() for p in critic.parameters()], [p.clone() for p in target.parameters()]
+    model.learn(10, reset_num_timesteps=False)  # one burst
+    step = model.updates.step
+    assert (step.gamma, step.tau, step.batch_size, step.latent_batch_size) == (0.5, 0.0, 5, 3)
+    assert any(not th.equal(p, q) for p, q in zip(critic.parameters(), weights, strict=True))
+    assert all(th.equal(p, q) for p, q in zip(target.parameters(), targets, strict=True))  # tau 0: targets stay
+
+
 def test_pretraining_runs_once_across_resumed_learns(monkeypatch) -> None:
     model = small_model(HazardPointEnv())
     calls = []
