@@ -19,6 +19,7 @@ first-person beside third-person).
     python benchmarks/learning.py                                           # cpu_learning, state, 160k steps, seed 0
     python benchmarks/learning.py --seeds 0 1 2 --parallel 2                # three seeds, two at a time
     python benchmarks/learning.py --preset cpu_pixels --obs-type pixels --sim-steps 300000 --seeds 0 1 2 --parallel 2
+    python benchmarks/learning.py ... --sim-steps 600000 --report-at 300000    # the table at 600k, and at 300k
 
 ``train_and_evaluate`` trains one seed in this process (the variants benchmark uses it).
 """
@@ -32,7 +33,7 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import IO, Any
 
@@ -358,10 +359,12 @@ def plot_seeds(
 LATE_EVALUATIONS = 3  # the table's late level: the last evaluations of each seed, pooled
 
 
-def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndarray], runs_root: Path) -> str:
+def summary_table(
+    runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndarray], minutes: dict[int, tuple[float, float]] | None
+) -> str:
     """
     Markdown: each seed's final evaluation and its late level (the last evaluations' episodes pooled), their mean and
-    std over seeds, and the random policy.
+    sample std over seeds, and the random policy; each seed's wall and CPU minutes when ``minutes`` has them.
     """
     lines = [
         f"| policy | sim steps | eval reward | eval cost | reward, last {LATE_EVALUATIONS} evals "
@@ -373,10 +376,10 @@ def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndar
         level = (run.rewards[-1].mean(), run.costs[-1].mean())
         level += (run.rewards[-LATE_EVALUATIONS:].mean(), run.costs[-LATE_EVALUATIONS:].mean())
         levels.append(level)
-        wall, cpu = run_minutes(runs_root / f"seed{seed}")
+        wall, cpu = (f"{value:.1f}" for value in minutes[seed]) if minutes else ("-", "-")
         lines.append(
             f"| DS-SLAC, seed {seed} | {int(run.sim_steps[-1]):,} | {level[0]:.2f} | {level[1]:.1f} | {level[2]:.2f} "
-            f"| {level[3]:.1f} | {wall:.1f} | {cpu:.1f} |"
+            f"| {level[3]:.1f} | {wall} | {cpu} |"
         )
     means = np.mean(levels, axis=0)
     stds = np.std(levels, axis=0, ddof=1) if len(levels) > 1 else np.zeros_like(means)
@@ -385,16 +388,26 @@ def summary_table(runs: dict[int, RunResults], random: tuple[np.ndarray, np.ndar
         f"| {means[1]:.1f} ± {stds[1]:.1f} | {means[2]:.2f} ± {stds[2]:.2f} | {means[3]:.1f} ± {stds[3]:.1f} | | |"
     )
     lines.append(f"| random policy ({len(random[0])} episodes) | | {random[0].mean():.2f} | {random[1].mean():.1f} | | | | |")
-    first = next(iter(runs.values()))
-    lines.append("")
-    lines.append(
-        f"Each evaluation: {first.rewards.shape[1]} episodes of a separate env, {first.eval_policy} policy "
-        f"(`train`'s default protocol); budget {first.cost_limit:g}. The last {LATE_EVALUATIONS} evaluations "
-        f"({LATE_EVALUATIONS * first.rewards.shape[1]} episodes) show each seed's level with less of one "
+    return "\n".join(lines)
+
+
+def protocol_note(run: RunResults) -> str:
+    """What an evaluation is, what the late level pools, and what the minutes count."""
+    return (
+        f"Each evaluation: {run.rewards.shape[1]} episodes of a separate env, {run.eval_policy} policy "
+        f"(`train`'s default protocol); budget {run.cost_limit:g}. The last {LATE_EVALUATIONS} evaluations "
+        f"({LATE_EVALUATIONS * run.rewards.shape[1]} episodes) show each seed's level with less of one "
         "evaluation's noise. The minutes are each seed's time account (`time_account.json`, carried in its checkpoints): "
         "every simulator step counted once across resumes, without the steps a run redid after a stop."
     )
-    return "\n".join(lines)
+
+
+def truncated(run: RunResults, sim_steps: int) -> RunResults:
+    """The run as it stood at ``sim_steps``: its evaluations up to and including that step."""
+    kept = run.sim_steps <= sim_steps
+    if not kept.any():
+        raise SystemExit(f"{run.path} has no evaluation at or before {sim_steps:,} simulator steps (--report-at)")
+    return replace(run, sim_steps=run.sim_steps[kept], rewards=run.rewards[kept], costs=run.costs[kept])
 
 
 def normalised_line(runs: dict[int, RunResults]) -> str:
@@ -498,6 +511,10 @@ def main() -> None:
     )
     parser.add_argument("--random-episodes", type=int, default=10)
     parser.add_argument(
+        "--report-at", type=int, nargs="*", default=[], metavar="SIM_STEPS",
+        help="also tabulate the seeds as they stood at these simulator steps (e.g. 300000 for runs of 600k)",
+    )  # fmt: skip
+    parser.add_argument(
         "--no-pictures", action="store_true", help="on pixels, skip beliefs.png and episode.mp4 of the first seed"
     )
     parser.add_argument("--poll", type=float, default=5.0, help="seconds between checks on the running seeds")
@@ -522,9 +539,14 @@ def main() -> None:
     title = f"{task_name(args.env)} ({args.obs_type}), preset {args.preset}{overrides}, {len(runs)} seeds"
     multipliers = {seed: read_multiplier(runs_root / f"seed{seed}") for seed in args.seeds}
     plot_seeds(out / "curves.png", runs, random, multipliers, title)
-    table = summary_table(runs, random, runs_root)
+    minutes = {seed: run_minutes(runs_root / f"seed{seed}") for seed in args.seeds}
+    table = summary_table(runs, random, minutes) + "\n\n" + protocol_note(next(iter(runs.values())))
     for extra in (normalised_line(runs), health_table(runs_root, multipliers), time_account_table(runs_root, args.seeds)):
         table += f"\n\n{extra}" if extra else ""
+    for sim_steps in args.report_at:
+        earlier = {seed: truncated(run, sim_steps) for seed, run in runs.items()}
+        table += f"\n\nThe same seeds at {sim_steps:,} simulator steps (their evaluations up to it):\n\n"
+        table += summary_table(earlier, random, None) + f"\n\n{normalised_line(earlier)}".rstrip()
     (out / "table.md").write_text(f"{title}\n\n{table}\n")
     print(f"\n{title}\n\n{table}\n\nwrote {out}/seed<S>.csv, curves.png, table.md")
     if args.obs_type == "pixels" and not args.no_pictures:

@@ -21,10 +21,10 @@ TINY = [
 ]  # fmt: skip
 
 
-def run_benchmark(out: Path, *seeds: str, sim_steps: int = 200) -> str:
+def run_benchmark(out: Path, *seeds: str, sim_steps: int = 200, extra: tuple[str, ...] = ()) -> str:
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
     command = [sys.executable, "benchmarks/learning.py", *TINY, "--seeds", *seeds, "--out", str(out)]
-    command += ["--sim-steps", str(sim_steps)]
+    command += ["--sim-steps", str(sim_steps), *extra]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
     return result.stdout
@@ -80,9 +80,19 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
     assert "mean ± sample std of 3 seeds" in (tmp_path / "table.md").read_text()
 
     # A finished seed asked for more simulator steps continues from its last checkpoint, its evaluations kept
-    output = run_benchmark(tmp_path, "0", sim_steps=300)
+    output = run_benchmark(tmp_path, "0", sim_steps=300, extra=("--report-at", "200"))
     assert "seed 0: resuming" in output and "--sim-steps 300" in output
     assert [line.split(",")[0] for line in (tmp_path / "seed0.csv").read_text().splitlines()[1:]] == ["100", "200", "300"]
+    # --report-at: the seed as it stood at 200 simulator steps, below its table at 300
+    table = (tmp_path / "table.md").read_text()
+    at_300, at_200 = (line for line in table.splitlines() if line.startswith("| DS-SLAC, seed 0 |"))
+    assert "The same seeds at 200 simulator steps" in table and at_300.split("|")[2:3] == [" 300 "]
+    with np.load(runs / "seed0" / "evaluations.npz") as extended:
+        rewards, costs = extended["results"][:2], extended["costs"][:2]  # the evaluations at 100 and 200
+    assert [float(cell) for cell in at_200.strip("|").split("|")[1:6]] == [
+        200, round(float(rewards[-1].mean()), 2), round(float(costs[-1].mean()), 1),
+        round(float(rewards.mean()), 2), round(float(costs.mean()), 1),
+    ]  # fmt: skip
 
 
 def test_the_table_gives_the_normalised_scores_beside_the_thesis(monkeypatch) -> None:
