@@ -13,7 +13,7 @@ normalised scores of thesis Eq. 5.1) and ``seed<S>_run/``, each seed's record wi
 ``progress.csv``, ``evaluations.npz``, ``time_account.json``, ``wall_minutes.json``: small enough to commit, and what
 ``python -m sb3_dsslac plot`` reads to compare tasks). On
 pixels it also shows what the first seed's agent sees and believes: ``beliefs.png`` (frames beside the latent model's
-reconstructions, with the predicted probability of cost) and ``episode.mp4`` (a deterministic evaluation episode,
+reconstructions, with the predicted probability of cost) and ``episode.mp4`` (an evaluation episode,
 first-person beside third-person).
 
     python benchmarks/learning.py                                           # cpu_learning, state, 160k steps, seed 0
@@ -45,6 +45,7 @@ import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
 from sb3_dsslac import DSSLAC, CostEvalCallback
 from sb3_dsslac.beliefs import episode_beliefs, mean_cost_probabilities, plot_beliefs
 from sb3_dsslac.envs import make_env
+from sb3_dsslac.evaluation import eval_policy_name
 from sb3_dsslac.plotting import RunResults, load_run, score_table, task_name
 from sb3_dsslac.presets import preset_hyperparams
 from sb3_dsslac.rollouts import evaluate
@@ -478,19 +479,26 @@ def time_account_table(runs_root: Path, seeds: list[int]) -> str:
 
 
 def write_pictures(out: Path, run_dir: Path, episode_seed: int) -> str:
-    """``beliefs.png`` and ``episode.mp4`` of the run's final model on one evaluation episode; a line saying so."""
+    """
+    ``beliefs.png`` and ``episode.mp4`` of the run's final model on one evaluation episode, with the policy its
+    evaluations used (a car's mean action can stand still where its sampled actions drive); a line saying so.
+    """
     config = load_config(run_dir)
     model = DSSLAC.load(run_dir / FINAL_MODEL, device="cpu")
-    beliefs = episode_beliefs(model, config.env, seed=episode_seed, env_kwargs=config.env_kwargs)
+    deterministic = config.eval_deterministic
+    beliefs = episode_beliefs(model, config.env, seed=episode_seed, deterministic=deterministic, env_kwargs=config.env_kwargs)
     plot_beliefs(beliefs, out / "beliefs.png")
     on_costly, on_free = mean_cost_probabilities(beliefs)
     results = evaluate(
-        model, config.env, episodes=1, deterministic=True, seed=episode_seed, video=out / "episode.mp4",
+        model, config.env, episodes=1, deterministic=deterministic, seed=episode_seed, video=out / "episode.mp4",
         obs_type="pixels", env_kwargs=config.env_kwargs,
     )  # fmt: skip
+    policy = eval_policy_name(deterministic)
     return (
-        f"{run_dir.name}, evaluation episode {episode_seed}, deterministic policy: reward {results.rewards[0]:.2f}, "
-        f"cost {results.costs[0]:g}; predicted p(cost) {on_costly:.3f} on its costly steps, {on_free:.3f} on the others"
+        f"{run_dir.name}, evaluation episode {episode_seed}, {policy} policy: beliefs.png's episode reward "
+        f"{beliefs.rewards.sum():.2f}, cost {beliefs.costs.sum():g}, predicted p(cost) {on_costly:.3f} on its costly "
+        f"steps and {on_free:.3f} on the others; episode.mp4's (its own draw of the actions) reward "
+        f"{results.rewards[0]:.2f}, cost {results.costs[0]:g}"
     )
 
 

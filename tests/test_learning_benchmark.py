@@ -142,7 +142,7 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     command = [sys.executable, "benchmarks/learning.py", *pixels, "--seeds", "3", "--out", str(tmp_path)]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "seed3, evaluation episode 10000, deterministic policy" in result.stdout
+    assert "seed3, evaluation episode 10000, stochastic policy" in result.stdout  # the policy the evaluations used
     assert (tmp_path / "beliefs.png").read_bytes()[:4] == b"\x89PNG"
     assert (tmp_path / "episode.mp4").stat().st_size > 1000
     assert "env_kwargs:\n  max_episode_steps: 25\n" in (tmp_path / "runs" / "seed3" / "config.yaml").read_text()
