@@ -47,7 +47,9 @@ def adam_step(optimizer: torch.optim.Optimizer, grads: list[Tensor], learning_ra
     """
     One Adam step of the optimizer's single parameter group with ``grads`` (in the order of its parameters).
 
-    Eagerly, the gradients become ``.grad``; a fused Adam then runs its kernel directly, the arithmetic of
+    Eagerly, the gradients become ``.grad``, each in its parameter's strides as ``backward`` would store it (the
+    gradients of ``torch.autograd.grad`` keep the layout their kernel chose, and CUDA's fused kernel refuses a gradient
+    whose strides are not its parameter's); a fused Adam then runs its kernel directly, the arithmetic of
     ``optimizer.step()`` without its profiler ranges and hooks (two ops per step), and any other optimizer steps.
     While ``torch.compile`` traces, it is the functional capturable Adam on the optimizer's own state tensors instead
     (the optimizer's ``step`` breaks a graph), with the step size read from ``learning_rate`` (a 0-d tensor on the
@@ -57,6 +59,10 @@ def adam_step(optimizer: torch.optim.Optimizer, grads: list[Tensor], learning_ra
     params: list[Tensor] = group["params"]
     compiling = torch.compiler.is_compiling()
     if not compiling:
+        grads = [
+            grad if grad.stride() == param.stride() else torch.empty_like(param).copy_(grad)
+            for param, grad in zip(params, grads, strict=True)
+        ]
         for param, grad in zip(params, grads, strict=True):
             param.grad = grad
         if not (isinstance(optimizer, torch.optim.Adam) and group["fused"]):

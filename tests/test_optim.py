@@ -39,3 +39,24 @@ def test_eager_fused_adam_step_is_the_optimizer_step_without_its_profiler_ranges
     for state, reference_state in zip(optimizer.state.values(), reference.state.values(), strict=True):
         for key in ("step", "exp_avg", "exp_avg_sq"):
             torch.testing.assert_close(state[key], reference_state[key])
+
+
+def test_eager_adam_step_gives_each_gradient_its_parameters_strides() -> None:
+    # A channels-last weight with a gradient in the default layout, and a matrix with a transposed gradient: CUDA's
+    # fused Adam refuses both (it ran on an H200 only once the strides matched)
+    params = [
+        torch.nn.Parameter(torch.randn(8, 3, 5, 5).to(memory_format=torch.channels_last)),
+        torch.nn.Parameter(torch.randn(4, 6)),
+    ]
+    grads = [torch.randn(8, 3, 5, 5), torch.randn(6, 4).t()]
+    copies = [torch.nn.Parameter(param.detach().clone()) for param in params]
+    optimizer = torch.optim.Adam(params, lr=1e-2, fused=True)
+    reference = torch.optim.Adam(copies, lr=1e-2)
+    adam_step(optimizer, grads)
+    for copy, grad in zip(copies, grads, strict=True):
+        copy.grad = grad.clone()
+    reference.step()
+    for param, copy, grad in zip(params, copies, grads, strict=True):
+        assert param.grad.stride() == param.stride()
+        torch.testing.assert_close(param.grad, grad)
+        torch.testing.assert_close(param, copy)
