@@ -79,7 +79,9 @@ class UpdateBursts:
 
     def _compile(self) -> None:
         """Fill ``compiled_steps`` with the compiled ``full_step`` and ``last_actor_critic_step``, where torch can."""
-        if not hasattr(th._dynamo.config, "trace_autograd_ops"):
+        # torch 2.11 has the option but its inductor fails on the traced backward (AssertionError after minutes, on an
+        # H200 at cpu_pixels32_bounded sizes)
+        if th.torch_version.TorchVersion(th.__version__) < (2, 13) or not hasattr(th._dynamo.config, "trace_autograd_ops"):
             warnings.warn(
                 f"compile_updates needs a torch whose compiler traces the backward pass (2.13 or newer), this is "
                 f"{th.__version__}: the updates run eagerly"

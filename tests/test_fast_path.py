@@ -212,6 +212,14 @@ def test_compile_failure_falls_back_to_eager_with_a_warning(monkeypatch) -> None
     assert model.updates.compiled_steps == {} and model._n_updates > 0
 
 
+def test_a_torch_older_than_2_13_runs_the_updates_eagerly_with_a_warning(monkeypatch) -> None:
+    monkeypatch.setattr(th, "__version__", "2.11.0+cu130")
+    with pytest.warns(UserWarning, match="2.13 or newer.*2.11.0"):
+        model = small_model(HazardPointEnv(), compile_updates=True)
+    model.learn(60)
+    assert model.updates.compiled_steps == {} and model._n_updates > 0
+
+
 def test_bf16_update_losses_are_within_one_percent_of_fp32(monkeypatch) -> None:
     monkeypatch.setattr(numerics, "has_native_bf16", lambda device: True)  # emulated bfloat16 computes the same
     fp32, bf16 = warmed_up_pair(bf16=True)
