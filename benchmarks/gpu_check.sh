@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # One bounded GPU check of the update (issue #12), for a bare CUDA machine (an H100/H200 box, no internet):
 # installs what the image lacks, runs benchmarks/throughput.py --device cuda --quick (updates/s, ops/update and
-# syncs/update of every update path) and a short full-size pixel training run (thesis_fast preset), then prints one
-# table. Under 8 minutes: every step has a timeout.
+# syncs/update of every update path, at the thesis shapes and the cpu_learning and cpu_pixels32_bounded presets) and
+# two short pixel training runs (thesis_fast at 64x64, cpu_pixels32_bounded at 32x32), then prints one table. Under 8
+# minutes: every step has a timeout.
 #
 #   bash benchmarks/gpu_check.sh --fetch     # here, with internet: wheels into .whl/, EGL debs into .gl/
 #   bash benchmarks/gpu_check.sh             # on the GPU machine, from the repository root
@@ -23,8 +24,8 @@ OUT_DIR=${OUT_DIR:-${OUT:-/tmp/gpu_check}}
 SITE=${SITE:-/tmp/gpu_check_site}
 PYTHON=${PYTHON:-python3}
 # What the CUDA image lacks (its python3 has torch, numpy, cloudpickle, tqdm, rich, pyyaml, pandas, matplotlib)
-PACKAGES=(stable_baselines3==2.9.2 sb3_contrib==2.9.2 gymnasium==1.4.0 farama-notifications==0.0.6 mujoco==4.0.0 mujoco-core==4.0.0
-    mujoco-studio==4.0.0 websockets==15.0.1 glfw==2.11.0 pyopengl==3.1.10)
+PACKAGES=(stable_baselines3==2.9.2 sb3_contrib==2.9.2 gymnasium==1.4.0 farama-notifications==0.0.6 mujoco==4.0.1 mujoco-core==4.0.1
+    mujoco-studio==4.0.1 mujoco-studio-wasm==4.0.1 websockets==17.4 glfw==2.11.0 pyopengl==3.1.10)
 
 if [[ "${1:-}" == "--fetch" ]]; then
     "$PYTHON" -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
@@ -45,6 +46,8 @@ if [[ "$DEVICE" == cpu ]]; then
     throughput_args=(--device cpu --quick --threads 1 --no-thesis --presets cpu_learning --preset-updates 4)
     train_args=(--preset cpu --obs-type state --device cpu --threads 1 --sim-steps 8000 --learning-starts 200
         --latent-pretrain-steps 5)
+    small_train_args=(--preset cpu_pixels32_bounded --device cpu --threads 1 --sim-steps 4000 --learning-starts 200
+        --latent-pretrain-steps 5)
 else
     if [[ $(id -u) == 0 ]] && compgen -G ".gl/*.deb" >/dev/null; then
         for deb in .gl/*.deb; do dpkg -x "$deb" /; done
@@ -60,8 +63,10 @@ else
     fi
     # The checkout, not an installed copy, is what runs
     export PYTHONPATH="$REPO:$REPO/benchmarks:$SITE"
-    throughput_args=(--device cuda --quick)
+    throughput_args=(--device cuda --quick --presets cpu_learning cpu_pixels32_bounded)
     train_args=(--preset thesis_fast --device cuda --sim-steps 8000 --learning-starts 500 --latent-pretrain-steps 100)
+    small_train_args=(--preset cpu_pixels32_bounded --device cuda --sim-steps 40000 --learning-starts 1000
+        --latent-pretrain-steps 100)
 fi
 export PYTHONUNBUFFERED=1 MUJOCO_GL=${MUJOCO_GL:-egl}
 nvidia_egl=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
@@ -78,39 +83,47 @@ fi
 [[ "$DEVICE" == cpu ]] || "$PYTHON" -c "import torch; assert torch.cuda.is_available(), 'no CUDA device'" || exit
 
 echo "== throughput ($(date +%T))"
-timeout 260 "$PYTHON" benchmarks/throughput.py "${throughput_args[@]}" --out "$OUT_DIR" 2>&1 | tee "$OUT_DIR/throughput.log"
+timeout 240 "$PYTHON" benchmarks/throughput.py "${throughput_args[@]}" --out "$OUT_DIR" 2>&1 | tee "$OUT_DIR/throughput.log"
 throughput_status=${PIPESTATUS[0]}
 
-echo "== training run ($(date +%T))"
-run_dir="$OUT_DIR/train_run"
-rm -rf "$run_dir"
-timeout 190 "$PYTHON" -m sb3_dsslac train --env SafetyGym/PointGoal1-v0 "${train_args[@]}" --out "$run_dir" \
-    --eval-every 1000000000 --checkpoint-every 1000000000 --quiet --no-progress-bar 2>&1 | tee "$OUT_DIR/train.log"
-train_status=${PIPESTATUS[0]}
+train_run() {  # train_run NAME TIMEOUT ARGS...: one short training run into $OUT_DIR/NAME
+    local name=$1 seconds=$2
+    shift 2
+    echo "== training run $name ($(date +%T))"
+    rm -rf "${OUT_DIR:?}/$name"
+    timeout "$seconds" "$PYTHON" -m sb3_dsslac train --env SafetyGym/PointGoal1-v0 "$@" --out "$OUT_DIR/$name" \
+        --eval-every 1000000000 --checkpoint-every 1000000000 --quiet --no-progress-bar 2>&1 | tee "$OUT_DIR/$name.log"
+    return "${PIPESTATUS[0]}"
+}
+train_run train_run 120 "${train_args[@]}"
+train_status=$?
+train_run small_train_run 90 "${small_train_args[@]}"
+small_train_status=$?
 
 echo
-echo "== $(date +%T): throughput exit $throughput_status, training exit $train_status (124: timed out)"
+echo "== $(date +%T): throughput exit $throughput_status, training exits $train_status and $small_train_status (124: timed out)"
 cat "$OUT_DIR"/throughput_*.md 2>/dev/null || echo "(no throughput table)"
-# Agent steps/s of the training run between its first and last progress rows after the warm-up and the latent
-# pre-training (train logs one row every 4 episodes, time/time_elapsed in whole seconds)
-"$PYTHON" - "$run_dir/progress.csv" "${train_args[*]}" <<'EOF'
+# Agent steps/s and updates/s of each training run between its first and last progress rows after the warm-up and the
+# latent pre-training (train logs one row every 4 episodes, time/time_elapsed in whole seconds)
+"$PYTHON" - "$OUT_DIR/train_run/progress.csv" "${train_args[*]}" "$OUT_DIR/small_train_run/progress.csv" \
+    "${small_train_args[*]}" <<'EOF'
 import csv
 import sys
 
-path, args = sys.argv[1:]
-try:
-    with open(path) as file:
-        rows = [row for row in csv.DictReader(file) if row.get("train/n_updates")]
-except FileNotFoundError:
-    rows = []
-if len(rows) < 2:
-    print(f"| real training, agent steps/s ({args}) | fewer than 2 progress rows after the warm-up |")
-    sys.exit()
-print("| measure | value |\n|---|---:|")
-first, last = rows[0], rows[-1]
-steps = float(last["time/total_timesteps"]) - float(first["time/total_timesteps"])
-seconds = float(last["time/time_elapsed"]) - float(first["time/time_elapsed"])
-updates = float(last["train/n_updates"]) - float(first["train/n_updates"])
-print(f"| real training, agent steps/s ({args}; agent steps {first['time/total_timesteps']} to "
-      f"{last['time/total_timesteps']}, {updates:.0f} updates) | {steps / seconds:.1f} |")
+print("| real training | agent steps | updates | agent steps/s | updates/s |\n|---|---:|---:|---:|---:|")
+for path, args in zip(sys.argv[1::2], sys.argv[2::2], strict=True):
+    try:
+        with open(path) as file:
+            rows = [row for row in csv.DictReader(file) if row.get("train/n_updates")]
+    except FileNotFoundError:
+        rows = []
+    if len(rows) < 2:
+        print(f"| {args} | fewer than 2 progress rows after the warm-up | | | |")
+        continue
+    first, last = rows[0], rows[-1]
+    steps = float(last["time/total_timesteps"]) - float(first["time/total_timesteps"])
+    seconds = float(last["time/time_elapsed"]) - float(first["time/time_elapsed"])
+    updates = float(last["train/n_updates"]) - float(first["train/n_updates"])
+    print(f"| {args} | {first['time/total_timesteps']} to {last['time/total_timesteps']} | {updates:.0f} | "
+          f"{steps / seconds:.1f} | {updates / seconds:.1f} |")
 EOF

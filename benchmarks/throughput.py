@@ -45,7 +45,7 @@ from sb3_dsslac import DSSLAC
 from sb3_dsslac.buffers import SequenceBatch
 from sb3_dsslac.critics import sample_taus
 from sb3_dsslac.dispatch import DispatchCounter, optimizer_step_tensors
-from sb3_dsslac.presets import preset_hyperparams
+from sb3_dsslac.presets import preset_env_kwargs, preset_hyperparams
 
 ENV_ID = "SafetyGym/PointGoal1-v0"
 
@@ -175,16 +175,18 @@ def measure_paths(
 def preset_paths(preset: str, device: str, fill_steps: int) -> dict[str, tuple[DSSLAC, Callable[[int], Any]]]:
     """
     Eager and ``compile_updates=True`` models of a small preset (``cpu`` on PointGoal1 pixels, ``cpu_learning`` on its
-    state vectors), sharing one buffer of ``fill_steps`` random-action agent steps. The first update runs the
-    preset's (here empty) latent pre-training, which fixes the standardisation of state vectors.
+    state vectors, ``cpu_pixels32_bounded`` on 32x32 pixels at action repeat 4: the preset's env keywords), sharing one
+    buffer of ``fill_steps`` random-action agent steps. The first update runs the preset's (here empty) latent
+    pre-training, which fixes the standardisation of state vectors.
     """
     obs_type = "state" if preset == "cpu_learning" else "pixels"
     paths: dict[str, tuple[DSSLAC, Callable[[int], Any]]] = {}
     source: DSSLAC | None = None
-    for label, keywords in (("eager", {}), ("compile_updates=True", {"compile_updates": True})):
+    for label, keywords in (("eager", {"compile_updates": False}), ("compile_updates=True", {"compile_updates": True})):
         set_random_seed(0)
         hyperparams = preset_hyperparams(preset, {"learning_starts": fill_steps, "latent_pretrain_steps": 0, **keywords})
-        model = DSSLAC("LatentPolicy", gym.make(ENV_ID, obs_type=obs_type), device=device, seed=0, **hyperparams)
+        env = gym.make(ENV_ID, obs_type=obs_type, **preset_env_kwargs(preset))
+        model = DSSLAC("LatentPolicy", env, device=device, seed=0, **hyperparams)
         if source is None:
             model.learn(fill_steps)
             source = model
@@ -218,7 +220,11 @@ def main() -> None:
     parser.add_argument("--burst", type=int, help="env steps and updates per training burst (default 100; quick: 10)")
     parser.add_argument("--compile", action="store_true", help="time compile_updates at the thesis shapes on the CPU too")
     parser.add_argument(
-        "--presets", nargs="*", default=["cpu", "cpu_learning"], choices=["cpu", "cpu_learning"], help="small presets timed"
+        "--presets",
+        nargs="*",
+        default=["cpu", "cpu_learning"],
+        choices=["cpu", "cpu_learning", "cpu_pixels32_bounded"],
+        help="small presets timed",
     )
     parser.add_argument(
         "--thesis",

@@ -59,8 +59,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     "thesis": {"lr_decay_milestone": THESIS_LR_DECAY_MILESTONE},
     # The thesis preset with one shared batch per update and, where the device computes bfloat16 natively (a recent GPU,
     # a CPU with AVX512-BF16 or AMX), bfloat16 convolutions: 2.3x the thesis code's updates/s on an AVX512-BF16 2-core CPU
-    # (benchmarks/throughput.py). Emulated bfloat16 was 7x slower on an AVX2-only CPU, hence "auto". Not the update that
-    # produced the thesis's numbers
+    # (benchmarks/throughput.py). Emulated bfloat16 was 7x slower on an AVX2-only CPU, hence "auto". On an H200 with the
+    # eager update (torch 2.11) it ran at 0.87x `thesis` (18.9 against 21.8 updates/s): that update is bound by kernel
+    # launches, and these options add some (docs/performance.md). Not the update that produced the thesis's numbers
     "thesis_fast": {"lr_decay_milestone": THESIS_LR_DECAY_MILESTONE, "share_latent_batch": True, "bf16": "auto"},
     # Small networks, a short warm-up and few updates: runs end to end in minutes on a 2-core CPU, learns little
     "cpu": {
