@@ -182,15 +182,31 @@ def test_reconstruction_speed_probes_the_latent_model_at_each_checkpoint(tmp_pat
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
     command = [sys.executable, "benchmarks/diagnostics/reconstruction_speed.py", "--random-steps", "120"]
     command += ["--checkpoints", "2", "5", "--episode-steps", "6", "--held-out-steps", "30", "--probe-windows", "100"]
-    command += ["--hyperparams", "sequence_length=3", "compile_updates=false", "--out", str(tmp_path)]
-    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)
+    command += ["--preset", "cpu_pixels32_bounded", "--hyperparams", "sequence_length=3", "compile_updates=false"]
+    result = subprocess.run([*command, "--out", str(tmp_path)], cwd=REPO, env=env, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
+    assert "{'width': 32, 'height': 32, 'action_repeat': 4}" in result.stdout.splitlines()[0]  # the preset's env keywords
     rows = [json.loads(line) for line in result.stdout.splitlines() if line.startswith("{")]
     assert [row["latent_updates"] for row in rows] == [2, 5]
     assert all(0.0 <= row["mean_abs_error"]["all"] <= 1.0 for row in rows)
     assert all(row["reward_r2"]["all"] <= 1.0 and 0.0 <= row["reward_r2"]["share_in_view"] <= 1.0 for row in rows)
     assert all(set(row["readout_r2"]) == {"goal column", "hazard column"} for row in rows)
     assert (tmp_path / "beliefs_2.png").is_file() and (tmp_path / "beliefs_5.png").is_file()
+
+
+def test_object_sizes_gives_each_object_its_shares_and_size() -> None:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
+    command = [sys.executable, "benchmarks/diagnostics/object_sizes.py", "--envs", "SafetyGym/PointGoal1-v0"]
+    command += ["--sizes", "16", "--episodes", "1"]
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)
+    assert result.returncode == 0, result.stdout + result.stderr
+    rows = [line.split("|")[1:-1] for line in result.stdout.splitlines() if line.startswith("| PointGoal1")]
+    assert [row[2].strip() for row in rows] == ["goal", "hazard"]
+    for row in rows:
+        frames, shown, in_view, median, per_mille = (float(cell.replace(",", "")) for cell in row[3:])
+        assert frames == 250 and 0.0 <= in_view <= shown <= 1.0
+        assert 0.0 <= median <= 256 and per_mille == pytest.approx(1000 * median / 256, abs=0.05)
+    assert float(rows[1][4]) > 0.0  # PointGoal1's eight hazards are in some random-policy frame
 
 
 def test_belief_probe_scores_a_linear_readout_near_one_and_noise_near_zero(monkeypatch) -> None:

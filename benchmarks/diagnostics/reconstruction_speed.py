@@ -32,7 +32,7 @@ from sb3_dsslac import DSSLAC
 from sb3_dsslac.buffers import SequenceBatch
 from sb3_dsslac.beliefs import EpisodeBeliefs, episode_beliefs, plot_beliefs
 from sb3_dsslac.envs import make_env
-from sb3_dsslac.presets import preset_hyperparams
+from sb3_dsslac.presets import preset_env_kwargs, preset_hyperparams
 from sb3_dsslac.runs import parse_hyperparams
 
 
@@ -48,10 +48,10 @@ def reconstruction_errors(episodes: list[EpisodeBeliefs]) -> dict[str, float | N
     return {name: round(float(np.mean(values)), 3) if values else None for name, values in errors.items()}
 
 
-def held_out_windows(env_id: str, hyperparams: dict, steps: int) -> SequenceBatch:
+def held_out_windows(env_id: str, env_kwargs: dict, hyperparams: dict, steps: int) -> SequenceBatch:
     """All windows of ``steps`` random-policy agent steps of a separate env seed, as a latent update sees them."""
     hyperparams = {**hyperparams, "learning_starts": steps, "train_freq": steps + 1, "buffer_size": steps + 1}
-    collector = DSSLAC("LatentPolicy", make_env(env_id, "pixels"), seed=1, verbose=0, **hyperparams)
+    collector = DSSLAC("LatentPolicy", make_env(env_id, "pixels", env_kwargs=env_kwargs), seed=1, verbose=0, **hyperparams)
     collector.learn(steps)
     buffer = collector.replay_buffer
     windows = buffer.valid_windows(buffer.sequence_length)
@@ -107,10 +107,12 @@ def main() -> None:
     # One rollout of random steps, then a single actor-critic update; the latent updates come below
     hyperparams.update(learning_starts=args.random_steps, train_freq=args.random_steps + 1, gradient_steps=1)
     hyperparams.update(latent_pretrain_steps=0, buffer_size=args.random_steps + 1)
-    model = DSSLAC("LatentPolicy", make_env(args.env, "pixels"), seed=0, verbose=0, **hyperparams)
+    env_kwargs = preset_env_kwargs(args.preset)  # the frame size and action repeat the preset runs at
+    model = DSSLAC("LatentPolicy", make_env(args.env, "pixels", env_kwargs=env_kwargs), seed=0, verbose=0, **hyperparams)
     model.learn(args.random_steps + 1)
-    windows = held_out_windows(args.env, hyperparams, args.held_out_steps)
-    print(f"{args.env}, preset {args.preset} {parse_hyperparams(args.hyperparams) or ''}, {cpu_model()}, one thread")
+    windows = held_out_windows(args.env, env_kwargs, hyperparams, args.held_out_steps)
+    overrides = parse_hyperparams(args.hyperparams) or ""
+    print(f"{args.env} {env_kwargs or ''}, preset {args.preset} {overrides}, {cpu_model()}, one thread")
     done = 0
     for target in args.checkpoints:
         n_updates = target - done
@@ -119,7 +121,10 @@ def main() -> None:
         model._pretrain_latent()  # the latent model's own updates, as in the pre-training
         seconds = time.perf_counter() - start
         done = target
-        episodes = [episode_beliefs(model, args.env, seed=10_000 + index, max_steps=args.episode_steps) for index in range(3)]
+        episodes = [
+            episode_beliefs(model, args.env, seed=10_000 + index, max_steps=args.episode_steps, env_kwargs=env_kwargs)
+            for index in range(3)
+        ]
         scores, _, _ = probe(model, args.probe_windows)
         plot_beliefs(episodes[0], args.out / f"beliefs_{done}.png", title=f"after {done:,} latent updates")
         row = {"latent_updates": done, "updates_per_s": round(n_updates / seconds, 2)}
