@@ -46,8 +46,9 @@ if [[ "$DEVICE" == cpu ]]; then
     throughput_args=(--device cpu --quick --threads 1 --no-thesis --presets cpu_learning --preset-updates 4)
     train_args=(--preset cpu --obs-type state --device cpu --threads 1 --sim-steps 8000 --learning-starts 200
         --latent-pretrain-steps 5)
-    small_train_args=(--preset cpu_pixels32_bounded --device cpu --threads 1 --sim-steps 4000 --learning-starts 200
-        --latent-pretrain-steps 5)
+    # Eager: compiling the preset's update on a CPU takes minutes, longer than the run's timeout
+    small_train_args=(--preset cpu_pixels32_bounded --device cpu --threads 1 --sim-steps 8000 --learning-starts 200
+        --latent-pretrain-steps 5 --hyperparams compile_updates=false)
 else
     if [[ $(id -u) == 0 ]] && compgen -G ".gl/*.deb" >/dev/null; then
         for deb in .gl/*.deb; do dpkg -x "$deb" /; done
