@@ -20,7 +20,11 @@ below), the updates/s (median of 3 timed bursts of ``--updates`` updates), then 
   frames, the critics' and the actor's losses, the entropy coefficient's step, the Polyak update, the NaN checks;
   its backward: the nodes of those losses and the capture of the parameters' gradients;
 - by op: the ``--top`` ops by self CPU time, in a profile without the ranges (with ``--compile``, of the compiled
-  update; its by-part table is of the eager update, the only one with modules and autograd nodes to attribute to).
+  update; its by-part table is of the eager update, the only one with modules and autograd nodes to attribute to);
+- the floor: the timed update less its convolutions and matrix products (their share of the by-op profile's self
+  time, the dispatching ops around them included), plus their FLOPs at the sgemm's rate: what the update would take
+  if every counted FLOP ran as fast as a large matrix product on this core and everything else (elementwise ops,
+  copies, the optimizer, Python) stayed as it is.
 
 The profiler slows the many small ops of an eager update down: the by-part shares are of the profiled update, and
 its last row is the update timed without the profiler.
@@ -73,6 +77,17 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
     "actor": ("action_log_prob",),
 }
 _BACKWARD_NODE = "autograd::engine::evaluate_function: "
+# The profiler's names of the ops that do the counted arithmetic (FlopCounterMode's ops), by kind
+MATRIX_PRODUCT_OPS = frozenset({"aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm"})
+ARITHMETIC_KINDS = ("convolutions", "matrix products")
+
+
+def arithmetic_kind(op_name: str) -> str | None:
+    """``ARITHMETIC_KINDS``' entry of an op (profiler ``aten::mm`` or FLOP counter ``aten.mm`` names), None for the rest."""
+    name = op_name.replace(".", "::", 1)
+    if "convolution" in name:
+        return "convolutions"
+    return "matrix products" if name in MATRIX_PRODUCT_OPS else None
 
 
 def build_model(preset: str, env_kwargs: dict[str, Any], fill: int, compile_updates: bool) -> DSSLAC:
@@ -218,10 +233,11 @@ class PartTracker:
         pass
 
 
-def count_flops(model: DSSLAC) -> dict[str, float]:
+def count_flops(model: DSSLAC) -> tuple[dict[str, float], dict[str, float]]:
     """
     FLOPs of one eager update (one latent and one actor-critic update) by part of ``PARTS``, ``OPTIMIZER``, ``OTHER``
-    (outside them) and "update" (all); ``FlopCounterMode`` counts matrix products and convolutions, forward and backward.
+    (outside them) and "update" (all), and by ``ARITHMETIC_KINDS``; ``FlopCounterMode`` counts matrix products and
+    convolutions, forward and backward.
     """
     tracker = PartTracker()
     counter = FlopCounterMode(display=False)
@@ -232,7 +248,13 @@ def count_flops(model: DSSLAC) -> dict[str, float]:
     flops: dict[str, float] = {label: counts.get(label, 0) for label in (*PARTS, OPTIMIZER, OTHER)}
     if sum(flops.values()) != counts["Global"]:
         raise RuntimeError(f"the FLOPs by part do not add up to the update's: {counts}")
-    return {**flops, "update": counts["Global"]}
+    by_kind = dict.fromkeys(ARITHMETIC_KINDS, 0.0)
+    for op, count in counter.get_flop_counts()["Global"].items():
+        kind = arithmetic_kind(str(op))
+        if kind is None:
+            raise RuntimeError(f"FlopCounterMode counted {op}, neither a convolution nor a matrix product")
+        by_kind[kind] += count
+    return {**flops, "update": counts["Global"]}, by_kind
 
 
 def _enclosing(event: FunctionEvent, labels: set[str]) -> tuple[str | None, bool]:
@@ -303,15 +325,23 @@ def profile_parts(model: DSSLAC, n_updates: int) -> tuple[dict[str, tuple[float,
     return times, update_ms
 
 
-def profile_ops(model: DSSLAC, n_updates: int, top: int) -> tuple[list[tuple[str, float, float]], float]:
-    """The ``top`` ops by self CPU time over ``n_updates`` updates as (name, calls, ms) per update; and ms per update."""
+def profile_ops(model: DSSLAC, n_updates: int, top: int) -> tuple[list[tuple[str, float, float]], dict[str, float], float]:
+    """
+    The ``top`` ops by self CPU time over ``n_updates`` updates as (name, calls, ms) per update; the self ms per update
+    of all ops of each of ``ARITHMETIC_KINDS``; and the profiled ms per update.
+    """
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         start = time.perf_counter()
         model.train(gradient_steps=n_updates, batch_size=model.batch_size)
         update_ms = (time.perf_counter() - start) * 1e3 / n_updates
-    averages = sorted(prof.key_averages(), key=lambda average: average.self_cpu_time_total, reverse=True)[:top]
+    averages = sorted(prof.key_averages(), key=lambda average: average.self_cpu_time_total, reverse=True)
     rows = [(average.key, average.count / n_updates, average.self_cpu_time_total / 1e3 / n_updates) for average in averages]
-    return rows, update_ms
+    by_kind = dict.fromkeys(ARITHMETIC_KINDS, 0.0)
+    for name, _, ms in rows:
+        kind = arithmetic_kind(name)
+        if kind is not None:
+            by_kind[kind] += ms
+    return rows[:top], by_kind, update_ms
 
 
 def part_table(
@@ -358,6 +388,26 @@ def op_table(rows: list[tuple[str, float, float]], profiled_ms: float, width: in
     return lines
 
 
+def floor_table(
+    update_ms: float, profiled_ms: float, arithmetic_ms: dict[str, float], arithmetic_flops: dict[str, float], sgemm: float
+) -> list[str]:
+    """
+    The floor markdown table: the timed update; its convolutions and matrix products at their shares of the profiled
+    update (``arithmetic_ms`` of ``profiled_ms``), with their GFLOP/s; the rest; and the update with the convolutions
+    and matrix products at ``sgemm`` GFLOP/s and the rest as timed, in ms and updates/s.
+    """
+    lines = ["| | ms/update | GFLOP/s | updates/s |", "|---|---:|---:|---:|"]
+    lines.append(f"| update | {update_ms:.2f} | | {1e3 / update_ms:.1f} |")
+    for kind in ARITHMETIC_KINDS:
+        ms = update_ms * arithmetic_ms[kind] / profiled_ms
+        lines.append(f"| of which {kind} | {ms:.2f} | {arithmetic_flops[kind] / (ms * 1e6) if ms > 0 else 0.0:.1f} | |")
+    rest_ms = update_ms * max(0.0, 1.0 - sum(arithmetic_ms.values()) / profiled_ms)
+    floor_ms = rest_ms + sum(arithmetic_flops.values()) / (sgemm * 1e6)
+    lines.append(f"| the rest (elementwise ops, copies, optimizer, Python) | {rest_ms:.2f} | | |")
+    lines.append(f"| floor: the rest, and both at sgemm's {sgemm:.1f} GFLOP/s | {floor_ms:.2f} | | {1e3 / floor_ms:.1f} |")
+    return lines
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", default="cpu_pixels32", help="hyperparameter preset (and its env keywords)")
@@ -388,13 +438,13 @@ def main(argv: list[str] | None = None) -> None:
 
     print("timing, counting FLOPs and profiling", file=sys.stderr, flush=True)
     update_ms = update_seconds(model, args.updates) * 1e3
-    flops = count_flops(model)
+    flops, arithmetic_flops = count_flops(model)
     eager_ms = update_ms
     if args.compile:  # the by-part table's reference: the eager update without the profiler
         with eager_updates(model):
             eager_ms = update_seconds(model, args.updates) * 1e3
     times, parts_ms = profile_parts(model, args.profile_updates)
-    ops, ops_ms = profile_ops(model, args.profile_updates, args.top)
+    ops, arithmetic_ms, ops_ms = profile_ops(model, args.profile_updates, args.top)
     if not all(math.isfinite(value) for pair in times.values() for value in pair):
         raise RuntimeError(f"non-finite times by part: {times}")
 
@@ -412,6 +462,11 @@ def main(argv: list[str] | None = None) -> None:
     print("\n".join(part_table(flops, times, parts_ms, eager_ms)))
     print(f"\nBy op ({update_path} update), per update, top {args.top} by self CPU time, {profiled}:\n")
     print("\n".join(op_table(ops, ops_ms)))
+    print(
+        f"\nFloor ({update_path} update): the update as timed, less its convolutions and matrix products (at their "
+        f"share of the by-op profile), plus their FLOPs at the sgemm's rate:\n"
+    )
+    print("\n".join(floor_table(update_ms, ops_ms, arithmetic_ms, arithmetic_flops, sgemm)))
 
 
 if __name__ == "__main__":

@@ -29,3 +29,28 @@ def test_update_profile_lists_every_part_with_its_flops_and_times(monkeypatch, c
     # The learned parts do the arithmetic: every one of them has FLOPs
     assert all(float(rows[label][0]) > 0.0 for label in update_profile.PARTS)
     assert "| aten::" in output[output.index("By op") :]
+    floor_table = output[output.index("| | ms/update |") :]
+    floor_rows = {
+        cells[0].strip(): [cell.strip() for cell in cells[1:]]
+        for cells in (line.strip("|").split("|") for line in floor_table.splitlines()[2:] if line.startswith("|"))
+    }
+    update_ms = float(floor_rows["update"][0])
+    kinds_ms = [float(floor_rows[f"of which {kind}"][0]) for kind in update_profile.ARITHMETIC_KINDS]
+    rest_ms = float(floor_rows["the rest (elementwise ops, copies, optimizer, Python)"][0])
+    # The convolutions (encoder, decoder) and matrix products (heads, critics) take time, and with the rest make the update
+    assert min(kinds_ms) > 0.0 and rest_ms >= 0.0
+    assert abs(sum(kinds_ms) + rest_ms - update_ms) <= 0.03 or rest_ms == 0.0
+    (floor_ms,) = (float(cells[0]) for label, cells in floor_rows.items() if label.startswith("floor:"))
+    assert rest_ms < floor_ms
+
+
+def test_arithmetic_kind_names_the_profilers_and_the_flop_counters_ops(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    import update_profile
+
+    assert update_profile.arithmetic_kind("aten::mkldnn_convolution") == "convolutions"
+    assert update_profile.arithmetic_kind("aten.convolution_backward") == "convolutions"
+    assert update_profile.arithmetic_kind("aten.addmm") == "matrix products"
+    assert update_profile.arithmetic_kind("aten::bmm") == "matrix products"
+    assert update_profile.arithmetic_kind("aten::add") is None
+    assert update_profile.arithmetic_kind("aten::mm_backward") is None
