@@ -161,6 +161,7 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     assert "of the frames" in result.stdout
     assert "cost decoder on the windows' last transitions: costly share" in result.stdout
     assert "cost decoder on 5 fresh episodes (125 steps), online filter: costly share" in result.stdout
+    assert "by the goal in view: goal in view " in result.stdout
 
     command = [sys.executable, "benchmarks/diagnostics/filter_memory.py", str(tmp_path / "runs" / "seed3"), "--env", TINY[1]]
     command += ["--episodes", "2", "--windows", "1", "2"]
@@ -240,6 +241,27 @@ def test_belief_probe_cost_head_auc_ranks_costly_transitions_against_free_ones(m
     scores = cost_head_scores(np.array([0.1, 0.3, 0.6, 0.8]), np.array([0.0, 0.0, 2.0, 1.0]))
     assert scores["costly share"] == 0.5 and scores["ROC AUC"] == 1.0
     assert scores["p(cost) on costly"] == 0.7 and scores["p(cost) on free"] == 0.2
+
+
+def test_belief_probe_splits_the_reward_by_the_goal_in_the_frame_acted_on(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
+    from belief_probe import MIN_PIXELS, reward_by_goal_view
+
+    # Two episodes of 2 steps (3 frames each); frames 0 and 1 of the first show the goal, no frame of the second does
+    frames = [np.zeros((3, 8, 8, 3), dtype=np.uint8) for _ in range(2)]
+    frames[0][:2, :, : MIN_PIXELS // 8 + 1, 1] = 255
+    frames[1][:, :, :, 1] = 255
+    frames[1][:, :, :, 0] = 255  # yellow, not green
+    rewards = [np.array([1.0, 0.5]), np.array([0.25, -0.25])]
+    split = reward_by_goal_view(frames, rewards)
+    assert split["goal in view"] == 0.5
+    assert split["reward per step in view"] == 0.75 and split["reward per step out of view"] == 0.0
+    assert split["share of the reward in view"] == 1.0
+    assert split["episode reward at the in-view rate"] == 1.5  # 0.75 per step over 2 steps per episode
+    # The last frame of an episode is never acted on: a goal seen only there counts for no step
+    frames[1][-1] = 0
+    frames[1][-1, :, :, 1] = 255
+    assert reward_by_goal_view(frames, rewards)["goal in view"] == 0.5
 
 
 def test_hazard_visibility_counts_sightings_in_the_window_and_the_bottom_rows(monkeypatch) -> None:

@@ -7,7 +7,10 @@ same for the hazards (blue). R^2 on a held-out third of the windows: 1 is a line
 It also scores the latent model's own cost decoder on the windows' last transitions: its mean probability of cost on
 the transitions that cost and on those that did not, and the ROC AUC between them (0.5: it cannot tell them apart),
 then the same on fresh episodes of the agent's stochastic policy, filtered online as it acts (``--episodes``): the
-buffer's windows are what the model trained on, the fresh episodes are held out.
+buffer's windows are what the model trained on, the fresh episodes are held out. On those episodes it splits the
+agent's reward by whether the goal is in view in the frame it acts on: the share of steps with the goal in view, the
+mean reward per step with and without it, and the episode reward at the in-view rate for every step (what an agent
+that kept the goal in view, or remembered where it is, would earn at the same skill).
 
     python benchmarks/diagnostics/belief_probe.py runs/<run>  # a run of `python -m sb3_dsslac train --obs-type pixels`
 
@@ -99,6 +102,29 @@ def cost_head_scores(probabilities: np.ndarray, costs: np.ndarray) -> dict[str, 
     }
 
 
+def reward_by_goal_view(frames: list[np.ndarray], rewards: list[np.ndarray]) -> dict[str, float | None]:
+    """
+    The reward of each step split by whether the goal is in view in the frame the agent acted on.
+
+    :param frames: per episode, (T + 1, H, W, 3) uint8 frames
+    :param rewards: per episode, (T,) rewards of the steps from each frame to the next
+    :return: the share of steps with the goal in view, the mean reward per step with the goal in view and without, the
+        share of the reward earned with it in view, and the episode reward (mean episode length) at the in-view rate
+    """
+    in_view = np.concatenate([frame_targets(episode[:-1])["goal in view"] > 0 for episode in frames])
+    reward = np.concatenate(rewards)
+    total = float(reward.sum())
+    return {
+        "goal in view": float(in_view.mean()),
+        "reward per step in view": float(reward[in_view].mean()) if in_view.any() else None,
+        "reward per step out of view": float(reward[~in_view].mean()) if (~in_view).any() else None,
+        "share of the reward in view": float(reward[in_view].sum()) / total if total > 0 else None,
+        "episode reward at the in-view rate": float(reward[in_view].mean()) * len(reward) / len(rewards)
+        if in_view.any()
+        else None,
+    }
+
+
 def format_scores(scores: dict[str, float | None]) -> str:
     """``name value`` pairs, n/a where a score is undefined."""
     return ", ".join(f"{name} {value:.3f}" if value is not None else f"{name} n/a" for name, value in scores.items())
@@ -174,6 +200,10 @@ def main() -> None:
         costs = np.concatenate([episode.costs for episode in episodes])
         held_out = format_scores(cost_head_scores(probabilities, costs))
         print(f"cost decoder on {args.episodes} fresh episodes ({len(costs)} steps), online filter: {held_out}")
+        rewards = [episode.rewards for episode in episodes]
+        by_view = reward_by_goal_view([episode.frames for episode in episodes], rewards)
+        mean_reward = sum(float(reward.sum()) for reward in rewards) / len(rewards)
+        print(f"reward on the same episodes (mean {mean_reward:.2f}) by the goal in view: {format_scores(by_view)}")
 
 
 if __name__ == "__main__":
