@@ -264,6 +264,19 @@ def test_belief_probe_splits_the_reward_by_the_goal_in_the_frame_acted_on(monkey
     assert reward_by_goal_view(frames, rewards)["goal in view"] == 0.5
 
 
+def test_belief_probe_times_the_search_from_a_goal_reached_to_the_next_goal_in_view(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
+    from belief_probe import search_lengths
+
+    # One episode of 6 steps (7 frames): goals reached at steps 0 and 4; the goal shows in frames 3 and 4 only
+    frames = np.zeros((7, 8, 8, 3), dtype=np.uint8)
+    frames[3:5, :, :, 1] = 255
+    rewards = np.array([1.05, 0.0, 0.1, 0.1, 1.1, -0.02])
+    assert search_lengths([frames], [rewards]) == ([3], 1)  # frame 3 three steps after step 0; after step 4 never
+    # No goal reached, no search
+    assert search_lengths([frames], [np.full(6, 0.1)]) == ([], 0)
+
+
 def test_hazard_visibility_counts_sightings_in_the_window_and_the_bottom_rows(monkeypatch) -> None:
     monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
     from hazard_visibility import hazard_in_view, seen_within

@@ -10,7 +10,8 @@ then the same on fresh episodes of the agent's stochastic policy, filtered onlin
 buffer's windows are what the model trained on, the fresh episodes are held out. On those episodes it splits the
 agent's reward by whether the goal is in view in the frame it acts on: the share of steps with the goal in view, the
 mean reward per step with and without it, and the episode reward at the in-view rate for every step (what an agent
-that kept the goal in view, or remembered where it is, would earn at the same skill).
+that kept the goal in view, or remembered where it is, would earn at the same skill), and the search after each goal
+reached (a new goal appears elsewhere): the agent steps until the next goal is in view.
 
     python benchmarks/diagnostics/belief_probe.py runs/<run>  # a run of `python -m sb3_dsslac train --obs-type pixels`
 
@@ -33,6 +34,7 @@ from sb3_dsslac.beliefs import episode_beliefs
 from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint, load_config
 
 MIN_PIXELS = 10  # an object is "in view" with at least this many of its pixels
+GOAL_REACHED = 0.5  # a step's reward above this holds the goal bonus (1 in every Goal task; distance terms are ~0.1)
 
 
 def object_masks(frames: np.ndarray) -> dict[str, np.ndarray]:
@@ -125,6 +127,27 @@ def reward_by_goal_view(frames: list[np.ndarray], rewards: list[np.ndarray]) -> 
     }
 
 
+def search_lengths(frames: list[np.ndarray], rewards: list[np.ndarray]) -> tuple[list[int], int]:
+    """
+    The searches after each goal reached: agent steps from the step that reached a goal (reward > ``GOAL_REACHED``) to
+    the first later frame that shows the (new) goal.
+
+    :param frames: per episode, (T + 1, H, W, 3) uint8 frames
+    :param rewards: per episode, (T,) rewards of the steps from each frame to the next
+    :return: the lengths of the searches that found the goal, and the number that the episode's end cut off
+    """
+    found, cut_off = [], 0
+    for episode_frames, episode_rewards in zip(frames, rewards, strict=True):
+        in_view = frame_targets(episode_frames)["goal in view"] > 0
+        for step in np.flatnonzero(episode_rewards > GOAL_REACHED):
+            later = np.flatnonzero(in_view[step + 1 :])
+            if len(later):
+                found.append(int(later[0]) + 1)
+            else:
+                cut_off += 1
+    return found, cut_off
+
+
 def format_scores(scores: dict[str, float | None]) -> str:
     """``name value`` pairs, n/a where a score is undefined."""
     return ", ".join(f"{name} {value:.3f}" if value is not None else f"{name} n/a" for name, value in scores.items())
@@ -204,6 +227,14 @@ def main() -> None:
         by_view = reward_by_goal_view([episode.frames for episode in episodes], rewards)
         mean_reward = sum(float(reward.sum()) for reward in rewards) / len(rewards)
         print(f"reward on the same episodes (mean {mean_reward:.2f}) by the goal in view: {format_scores(by_view)}")
+        found, cut_off = search_lengths([episode.frames for episode in episodes], rewards)
+        if found or cut_off:
+            searched = (
+                f"median {np.median(found):.0f}, mean {np.mean(found):.1f}, {sum(found)} steps in all" if found else "none"
+            )
+            print(
+                f"goals reached {len(found) + cut_off}; searches for the next goal, agent steps: {searched}; {cut_off} cut off"
+            )
 
 
 if __name__ == "__main__":
