@@ -245,7 +245,7 @@ def test_belief_probe_cost_head_auc_ranks_costly_transitions_against_free_ones(m
 
 def test_belief_probe_splits_the_reward_by_the_goal_in_the_frame_acted_on(monkeypatch) -> None:
     monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
-    from belief_probe import MIN_PIXELS, reward_by_goal_view
+    from belief_probe import MIN_PIXELS, goal_in_view, reward_by_goal_view
 
     # Two episodes of 2 steps (3 frames each); frames 0 and 1 of the first show the goal, no frame of the second does
     frames = [np.zeros((3, 8, 8, 3), dtype=np.uint8) for _ in range(2)]
@@ -253,7 +253,7 @@ def test_belief_probe_splits_the_reward_by_the_goal_in_the_frame_acted_on(monkey
     frames[1][:, :, :, 1] = 255
     frames[1][:, :, :, 0] = 255  # yellow, not green
     rewards = [np.array([1.0, 0.5]), np.array([0.25, -0.25])]
-    split = reward_by_goal_view(frames, rewards)
+    split = reward_by_goal_view([goal_in_view(episode) for episode in frames], rewards)
     assert split["goal in view"] == 0.5
     assert split["reward per step in view"] == 0.75 and split["reward per step out of view"] == 0.0
     assert split["share of the reward in view"] == 1.0
@@ -261,20 +261,23 @@ def test_belief_probe_splits_the_reward_by_the_goal_in_the_frame_acted_on(monkey
     # The last frame of an episode is never acted on: a goal seen only there counts for no step
     frames[1][-1] = 0
     frames[1][-1, :, :, 1] = 255
-    assert reward_by_goal_view(frames, rewards)["goal in view"] == 0.5
+    assert reward_by_goal_view([goal_in_view(episode) for episode in frames], rewards)["goal in view"] == 0.5
 
 
 def test_belief_probe_times_the_search_from_a_goal_reached_to_the_next_goal_in_view(monkeypatch) -> None:
     monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
-    from belief_probe import search_lengths
+    from belief_probe import goal_in_view, search_lengths
 
     # One episode of 6 steps (7 frames): goals reached at steps 0 and 4; the goal shows in frames 3 and 4 only
     frames = np.zeros((7, 8, 8, 3), dtype=np.uint8)
     frames[3:5, :, :, 1] = 255
     rewards = np.array([1.05, 0.0, 0.1, 0.1, 1.1, -0.02])
-    assert search_lengths([frames], [rewards]) == ([3], 1)  # frame 3 three steps after step 0; after step 4 never
+    assert search_lengths([goal_in_view(frames)], [rewards]) == (
+        [3],
+        1,
+    )  # frame 3 three steps after step 0; after step 4 never
     # No goal reached, no search
-    assert search_lengths([frames], [np.full(6, 0.1)]) == ([], 0)
+    assert search_lengths([goal_in_view(frames)], [np.full(6, 0.1)]) == ([], 0)
 
 
 def test_hazard_visibility_counts_sightings_in_the_window_and_the_bottom_rows(monkeypatch) -> None:

@@ -104,43 +104,47 @@ def cost_head_scores(probabilities: np.ndarray, costs: np.ndarray) -> dict[str, 
     }
 
 
-def reward_by_goal_view(frames: list[np.ndarray], rewards: list[np.ndarray]) -> dict[str, float | None]:
+def goal_in_view(frames: np.ndarray) -> np.ndarray:
+    """(T, H, W, 3) uint8 frames -> (T,) bool: the goal is in view (at least ``MIN_PIXELS`` of its pixels)."""
+    return frame_targets(frames)["goal in view"] > 0
+
+
+def reward_by_goal_view(in_view: list[np.ndarray], rewards: list[np.ndarray]) -> dict[str, float | None]:
     """
     The reward of each step split by whether the goal is in view in the frame the agent acted on.
 
-    :param frames: per episode, (T + 1, H, W, 3) uint8 frames
+    :param in_view: per episode, (T + 1,) ``goal_in_view`` of its frames
     :param rewards: per episode, (T,) rewards of the steps from each frame to the next
     :return: the share of steps with the goal in view, the mean reward per step with the goal in view and without, the
         share of the reward earned with it in view, and the episode reward (mean episode length) at the in-view rate
     """
-    in_view = np.concatenate([frame_targets(episode[:-1])["goal in view"] > 0 for episode in frames])
+    acted_on = np.concatenate([episode[:-1] for episode in in_view])
     reward = np.concatenate(rewards)
     total = float(reward.sum())
     return {
-        "goal in view": float(in_view.mean()),
-        "reward per step in view": float(reward[in_view].mean()) if in_view.any() else None,
-        "reward per step out of view": float(reward[~in_view].mean()) if (~in_view).any() else None,
-        "share of the reward in view": float(reward[in_view].sum()) / total if total > 0 else None,
-        "episode reward at the in-view rate": float(reward[in_view].mean()) * len(reward) / len(rewards)
-        if in_view.any()
+        "goal in view": float(acted_on.mean()),
+        "reward per step in view": float(reward[acted_on].mean()) if acted_on.any() else None,
+        "reward per step out of view": float(reward[~acted_on].mean()) if (~acted_on).any() else None,
+        "share of the reward in view": float(reward[acted_on].sum()) / total if total > 0 else None,
+        "episode reward at the in-view rate": float(reward[acted_on].mean()) * len(reward) / len(rewards)
+        if acted_on.any()
         else None,
     }
 
 
-def search_lengths(frames: list[np.ndarray], rewards: list[np.ndarray]) -> tuple[list[int], int]:
+def search_lengths(in_view: list[np.ndarray], rewards: list[np.ndarray]) -> tuple[list[int], int]:
     """
     The searches after each goal reached: agent steps from the step that reached a goal (reward > ``GOAL_REACHED``) to
     the first later frame that shows the (new) goal.
 
-    :param frames: per episode, (T + 1, H, W, 3) uint8 frames
+    :param in_view: per episode, (T + 1,) ``goal_in_view`` of its frames
     :param rewards: per episode, (T,) rewards of the steps from each frame to the next
     :return: the lengths of the searches that found the goal, and the number that the episode's end cut off
     """
     found, cut_off = [], 0
-    for episode_frames, episode_rewards in zip(frames, rewards, strict=True):
-        in_view = frame_targets(episode_frames)["goal in view"] > 0
+    for episode_in_view, episode_rewards in zip(in_view, rewards, strict=True):
         for step in np.flatnonzero(episode_rewards > GOAL_REACHED):
-            later = np.flatnonzero(in_view[step + 1 :])
+            later = np.flatnonzero(episode_in_view[step + 1 :])
             if len(later):
                 found.append(int(later[0]) + 1)
             else:
@@ -224,10 +228,11 @@ def main() -> None:
         held_out = format_scores(cost_head_scores(probabilities, costs))
         print(f"cost decoder on {args.episodes} fresh episodes ({len(costs)} steps), online filter: {held_out}")
         rewards = [episode.rewards for episode in episodes]
-        by_view = reward_by_goal_view([episode.frames for episode in episodes], rewards)
+        in_view = [goal_in_view(episode.frames) for episode in episodes]
+        by_view = reward_by_goal_view(in_view, rewards)
         mean_reward = sum(float(reward.sum()) for reward in rewards) / len(rewards)
         print(f"reward on the same episodes (mean {mean_reward:.2f}) by the goal in view: {format_scores(by_view)}")
-        found, cut_off = search_lengths([episode.frames for episode in episodes], rewards)
+        found, cut_off = search_lengths(in_view, rewards)
         if found or cut_off:
             searched = (
                 f"median {np.median(found):.0f}, mean {np.mean(found):.1f}, {sum(found)} steps in all" if found else "none"
