@@ -5,6 +5,7 @@ Where one DS-SLAC update's time goes on the CPU: the FLOPs, forward and backward
     python benchmarks/update_profile.py                 # cpu_pixels32 (32x32 frames), eager: under a minute on 2 cores
     python benchmarks/update_profile.py --size 64       # the cpu_pixels shapes (64x64 frames)
     python benchmarks/update_profile.py --compile       # compile_updates: the op table shows the compiled kernels
+    python benchmarks/update_profile.py --compile --free-convolutions   # the floor with the convolutions' time measured
 
 The model's buffer holds ``--fill`` random agent steps of SafetyGym/PointGoal1-v0 pixels; 10 updates warm it up
 (and compile them with ``--compile``). Printed: the core's single-thread sgemm speed (the reference for the GFLOP/s
@@ -24,7 +25,10 @@ below), the updates/s (median of 3 timed bursts of ``--updates`` updates), then 
 - the floor: the timed update less its convolutions and matrix products (their share of the by-op profile's self
   time, the dispatching ops around them included), plus their FLOPs at the sgemm's rate: what the update would take
   if every counted FLOP ran as fast as a large matrix product on this core and everything else (elementwise ops,
-  copies, the optimizer, Python) stayed as it is.
+  copies, the optimizer, Python) stayed as it is. With ``--free-convolutions`` the convolutions' time is measured
+  without the profiler: a second model whose convolution layers are free stand-ins of the same shapes
+  (``FreeConvolution``: the same parameters and output layouts, next to no arithmetic) is timed the same way, and the
+  convolutions take the difference.
 
 The profiler slows the many small ops of an eager update down: the by-part shares are of the profiled update, and
 its last row is the update timed without the profiler.
@@ -52,6 +56,7 @@ from torch.utils.hooks import RemovableHandle
 import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
 import sb3_dsslac.gradient_step as gradient_step_module
 from sb3_dsslac import DSSLAC
+from sb3_dsslac.convolutions import DenseConv2d, DenseConvTranspose2d
 from sb3_dsslac.presets import preset_env_kwargs, preset_hyperparams
 
 ENV_ID = "SafetyGym/PointGoal1-v0"
@@ -90,10 +95,57 @@ def arithmetic_kind(op_name: str) -> str | None:
     return "matrix products" if name in MATRIX_PRODUCT_OPS else None
 
 
-def build_model(preset: str, env_kwargs: dict[str, Any], fill: int, compile_updates: bool) -> DSSLAC:
+class FreeConvolution(nn.Module):
+    """
+    A stand-in for a convolution layer at next to no arithmetic: the layer's output shape and memory layout, written
+    out from one input element times each output channel's weight sum, plus the bias. It holds the layer's own
+    parameters, so the optimizer steps the same tensors and gradients still reach them and the layer's input.
+    """
+
+    def __init__(self, layer: nn.Conv2d | nn.ConvTranspose2d) -> None:
+        super().__init__()
+        self.weight, self.bias = layer.weight, layer.bias
+        self.transposed = isinstance(layer, nn.ConvTranspose2d)
+        output_padding = layer.output_padding[0] if self.transposed else 0
+        self.geometry = (layer.kernel_size[0], layer.stride[0], int(layer.padding[0]), output_padding)  # type: ignore[arg-type]
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        """(N, C, H, H) -> (N, C', O, O), O as the layer computes it."""
+        kernel, stride, padding, output_padding = self.geometry
+        size = x.shape[-1]
+        if self.transposed:
+            out_size = (size - 1) * stride - 2 * padding + kernel + output_padding
+            per_channel = self.weight.sum(dim=(0, 2, 3))
+        else:
+            out_size = (size + 2 * padding - kernel) // stride + 1
+            per_channel = self.weight.sum(dim=(1, 2, 3))
+        value = x[:1, :1, :1, :1].reshape(1) * per_channel
+        if self.bias is not None:
+            value = value + self.bias
+        layout = th.channels_last if x.is_contiguous(memory_format=th.channels_last) else th.contiguous_format
+        out = value.view(1, -1, 1, 1).expand(x.shape[0], -1, out_size, out_size)
+        return out.contiguous(memory_format=layout)
+
+
+def free_convolutions(model: DSSLAC) -> None:
+    """
+    Replace the latent model's convolution layers by ``FreeConvolution``: every ``nn.Conv2d`` and ``nn.ConvTranspose2d``
+    of its encoder and decoder but the two that run as one matrix product (``DenseConv2d`` on its kernel-sized input,
+    ``DenseConvTranspose2d`` from 1x1), i.e. the layers whose ops ``arithmetic_kind`` calls convolutions.
+    """
+    latent = model.policy.latent
+    for network in (latent.encoder, latent.decoder):
+        for index, layer in enumerate(network):
+            convolution = isinstance(layer, nn.Conv2d | nn.ConvTranspose2d)
+            if convolution and not isinstance(layer, DenseConv2d | DenseConvTranspose2d):
+                network[index] = FreeConvolution(layer)
+
+
+def build_model(preset: str, env_kwargs: dict[str, Any], fill: int, compile_updates: bool, free: bool = False) -> DSSLAC:
     """
     A ``preset`` model on PointGoal1 pixels whose buffer holds ``fill`` random agent steps, after one update (the
-    setup of compare_trees.py's timing: one rollout of ``fill + 1`` steps, then one gradient step).
+    setup of compare_trees.py's timing: one rollout of ``fill + 1`` steps, then one gradient step); with ``free``, its
+    convolutions replaced by ``FreeConvolution`` before that update (and its compilation).
     """
     env = gym.make(ENV_ID, obs_type="pixels", **env_kwargs)
     overrides = {
@@ -105,6 +157,8 @@ def build_model(preset: str, env_kwargs: dict[str, Any], fill: int, compile_upda
         "compile_updates": compile_updates,
     }
     model = DSSLAC("LatentPolicy", env, seed=0, **preset_hyperparams(preset, overrides))
+    if free:
+        free_convolutions(model)
     model.learn(fill + 1)
     return model
 
@@ -389,19 +443,30 @@ def op_table(rows: list[tuple[str, float, float]], profiled_ms: float, width: in
 
 
 def floor_table(
-    update_ms: float, profiled_ms: float, arithmetic_ms: dict[str, float], arithmetic_flops: dict[str, float], sgemm: float
+    update_ms: float,
+    profiled_ms: float,
+    arithmetic_ms: dict[str, float],
+    arithmetic_flops: dict[str, float],
+    sgemm: float,
+    free_ms: float | None = None,
 ) -> list[str]:
     """
     The floor markdown table: the timed update; its convolutions and matrix products at their shares of the profiled
     update (``arithmetic_ms`` of ``profiled_ms``), with their GFLOP/s; the rest; and the update with the convolutions
-    and matrix products at ``sgemm`` GFLOP/s and the rest as timed, in ms and updates/s.
+    and matrix products at ``sgemm`` GFLOP/s and the rest as timed, in ms and updates/s. With ``free_ms`` (the update
+    timed with ``FreeConvolution`` layers) the convolutions' time is measured instead: the update less that one.
     """
     lines = ["| | ms/update | GFLOP/s | updates/s |", "|---|---:|---:|---:|"]
     lines.append(f"| update | {update_ms:.2f} | | {1e3 / update_ms:.1f} |")
-    for kind in ARITHMETIC_KINDS:
-        ms = update_ms * arithmetic_ms[kind] / profiled_ms
-        lines.append(f"| of which {kind} | {ms:.2f} | {arithmetic_flops[kind] / (ms * 1e6) if ms > 0 else 0.0:.1f} | |")
-    rest_ms = update_ms * max(0.0, 1.0 - sum(arithmetic_ms.values()) / profiled_ms)
+    if free_ms is not None:
+        lines.append(f"| update with free convolutions | {free_ms:.2f} | | {1e3 / free_ms:.1f} |")
+    kinds_ms = {kind: update_ms * arithmetic_ms[kind] / profiled_ms for kind in ARITHMETIC_KINDS}
+    if free_ms is not None:
+        kinds_ms["convolutions"] = update_ms - free_ms
+    for kind, ms in kinds_ms.items():
+        rate = f"{arithmetic_flops[kind] / (ms * 1e6):.1f}" if ms > 0 else "-"
+        lines.append(f"| of which {kind} | {ms:.2f} | {rate} | |")
+    rest_ms = max(0.0, update_ms - sum(kinds_ms.values()))
     floor_ms = rest_ms + sum(arithmetic_flops.values()) / (sgemm * 1e6)
     lines.append(f"| the rest (elementwise ops, copies, optimizer, Python) | {rest_ms:.2f} | | |")
     lines.append(f"| floor: the rest, and both at sgemm's {sgemm:.1f} GFLOP/s | {floor_ms:.2f} | | {1e3 / floor_ms:.1f} |")
@@ -418,6 +483,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--fill", type=int, default=600, help="random agent steps in the replay buffer")
     parser.add_argument("--compile", action="store_true", help="compile_updates=True (a few minutes of compilation)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument(
+        "--free-convolutions",
+        action="store_true",
+        help="also time the update with free stand-ins for the convolutions (a second model, compiled again with "
+        "--compile): the floor's convolution time measured, not read off the profile",
+    )
     return parser.parse_args(argv)
 
 
@@ -445,6 +516,12 @@ def main(argv: list[str] | None = None) -> None:
             eager_ms = update_seconds(model, args.updates) * 1e3
     times, parts_ms = profile_parts(model, args.profile_updates)
     ops, arithmetic_ms, ops_ms = profile_ops(model, args.profile_updates, args.top)
+    free_ms = None
+    if args.free_convolutions:
+        print("timing the update with free convolutions", file=sys.stderr, flush=True)
+        free = build_model(args.preset, env_kwargs, args.fill, args.compile, free=True)
+        free.train(gradient_steps=10, batch_size=free.batch_size)
+        free_ms = update_seconds(free, args.updates) * 1e3
     if not all(math.isfinite(value) for pair in times.values() for value in pair):
         raise RuntimeError(f"non-finite times by part: {times}")
 
@@ -462,11 +539,17 @@ def main(argv: list[str] | None = None) -> None:
     print("\n".join(part_table(flops, times, parts_ms, eager_ms)))
     print(f"\nBy op ({update_path} update), per update, top {args.top} by self CPU time, {profiled}:\n")
     print("\n".join(op_table(ops, ops_ms)))
-    print(
-        f"\nFloor ({update_path} update): the update as timed, less its convolutions and matrix products (at their "
-        f"share of the by-op profile), plus their FLOPs at the sgemm's rate:\n"
+    measured = (
+        "the convolutions as the update less the update with free convolutions, the matrix products at their share of "
+        "the by-op profile"
+        if free_ms is not None
+        else "at their share of the by-op profile"
     )
-    print("\n".join(floor_table(update_ms, ops_ms, arithmetic_ms, arithmetic_flops, sgemm)))
+    print(
+        f"\nFloor ({update_path} update): the update as timed, less its convolutions and matrix products ({measured}), "
+        f"plus their FLOPs at the sgemm's rate:\n"
+    )
+    print("\n".join(floor_table(update_ms, ops_ms, arithmetic_ms, arithmetic_flops, sgemm, free_ms)))
 
 
 if __name__ == "__main__":

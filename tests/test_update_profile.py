@@ -54,3 +54,66 @@ def test_arithmetic_kind_names_the_profilers_and_the_flop_counters_ops(monkeypat
     assert update_profile.arithmetic_kind("aten::bmm") == "matrix products"
     assert update_profile.arithmetic_kind("aten::add") is None
     assert update_profile.arithmetic_kind("aten::mm_backward") is None
+
+
+def test_free_convolutions_keep_each_layers_shapes_layouts_and_parameters(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    import torch as th
+    import update_profile
+
+    from sb3_dsslac.convolutions import SubpixelConvTranspose2d
+
+    layers = [
+        th.nn.Conv2d(3, 8, 5, stride=2, padding=2),
+        th.nn.Conv2d(8, 16, 3, stride=2, padding=1),
+        th.nn.ConvTranspose2d(16, 8, 3, stride=2, padding=1, output_padding=1),
+        SubpixelConvTranspose2d(8, 3, 5, stride=2, padding=2, output_padding=1),
+    ]
+    for layer in layers:
+        for layout in (th.contiguous_format, th.channels_last):
+            x = th.rand(2, layer.in_channels, 16, 16).contiguous(memory_format=layout).requires_grad_()
+            free = update_profile.FreeConvolution(layer)
+            out = free(x)
+            assert out.shape == layer(x).shape and out.is_contiguous(memory_format=layout), (layer, layout)
+            assert free.weight is layer.weight and free.bias is layer.bias
+            out.sum().backward()
+            assert x.grad is not None and layer.weight.grad is not None and layer.bias.grad is not None
+            layer.zero_grad()
+
+
+def test_the_floor_measures_the_convolutions_with_free_stand_ins(monkeypatch, capsys) -> None:
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    import update_profile
+
+    arguments = ["--preset", "cpu", "--size", "32", "--updates", "2", "--profile-updates", "2", "--fill", "100"]
+    update_profile.main([*arguments, "--free-convolutions"])
+    output = capsys.readouterr().out
+    floor_table = output[output.index("| | ms/update |") :]
+    rows = {
+        cells[0].strip(): float(cells[1])
+        for cells in (line.strip("|").split("|") for line in floor_table.splitlines()[2:] if line.startswith("|"))
+    }
+    update_ms, free_ms = rows["update"], rows["update with free convolutions"]
+    assert free_ms > 0.0 and abs(rows["of which convolutions"] - (update_ms - free_ms)) <= 0.011
+    expected_rest = max(0.0, free_ms - rows["of which matrix products"])
+    assert abs(rows["the rest (elementwise ops, copies, optimizer, Python)"] - expected_rest) <= 0.011
+
+
+def test_free_convolutions_replace_the_layers_that_run_convolution_ops(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    import update_profile
+
+    from sb3_dsslac import DSSLAC
+    from tests.synthetic_envs import HazardPointEnv
+    from tests.test_dsslac import SMALL
+
+    model = DSSLAC("LatentPolicy", HazardPointEnv(obs_type="pixels", size=64), **SMALL)
+    latent = model.policy.latent
+    parameters = [id(parameter) for parameter in latent.parameters()]
+    update_profile.free_convolutions(model)
+    kinds = [type(layer).__name__ for network in (latent.encoder, latent.decoder) for layer in network]
+    # 64x64: four stride-2 convolutions, the dense 4x4 one, the dense 1x1 transposed one, three stride-2 transposed ones
+    # and the sub-pixel output layer
+    assert kinds.count("FreeConvolution") == 8
+    assert kinds.count("DenseConv2d") == 1 and kinds.count("DenseConvTranspose2d") == 1
+    assert [id(parameter) for parameter in latent.parameters()] == parameters  # the optimizer's, in its order
