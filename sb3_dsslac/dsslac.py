@@ -354,12 +354,6 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         )
         # The update engine: rebuilt here, never saved
         self.updates = UpdateBursts(step, self.lagrange_raw, self.compile_updates, self.time_account)
-        if self.updates.compiled_steps and tuple(self.policy.latent.observation_shape[1:]) == (64, 64):
-            # NHWC convolutions at every width where the update is compiled: the compiled cpu_pixels update (64x64, widths
-            # 8-64) took 58.6 and 58.7 ms against NCHW's 64.8 and 62.9 (one thread, AMD EPYC), while the eager one was
-            # slower in NHWC (74.5 against 71.6 ms): eagerly the latent model keeps its own choice (NHWC at the thesis's
-            # widths). The parameters stay the same objects, so the optimizers keep them
-            self.policy.latent.to(memory_format=th.channels_last)
 
     def _optimizer_names(self) -> list[str]:
         """Every optimizer, by the attribute path it is saved under: the policy's four, then the entropy coefficient's."""

@@ -121,21 +121,6 @@ def test_channels_last_convolutions_match_contiguous_ones() -> None:
     assert narrow.encoder[0].weight.is_contiguous() and narrow.decoder[-2].weight.is_contiguous()
 
 
-@pytest.mark.parametrize(("size", "compile_updates", "nhwc"), [(64, True, True), (64, False, False), (32, True, False)])
-def test_compiled_64x64_updates_run_channels_last_convolutions(size: int, compile_updates: bool, nhwc: bool) -> None:
-    narrow = {**SMALL["policy_kwargs"], "image_channels": (8, 16, 32, 64)}
-    model = small_model(HazardPointEnv(obs_type="pixels", size=size), compile_updates=compile_updates, policy_kwargs=narrow)
-    latent = model.policy.latent
-    convolutions = [
-        layer.weight for layer in (*latent.encoder, *latent.decoder) if isinstance(layer, th.nn.Conv2d | th.nn.ConvTranspose2d)
-    ]
-    assert all(weight.is_contiguous(memory_format=th.channels_last) == nhwc for weight in convolutions)
-    assert all(weight.is_contiguous() != nhwc for weight in convolutions)
-    # the optimizer steps the module's own parameters, whatever their layout
-    optimized = {id(parameter) for group in model.policy.latent_optimizer.param_groups for parameter in group["params"]}
-    assert optimized == {id(parameter) for parameter in latent.parameters()}
-
-
 def test_bf16_latent_loss_is_within_one_percent_of_fp32() -> None:
     th.manual_seed(0)
     model = LatentModel((3, 64, 64), 2)  # the thesis's networks
