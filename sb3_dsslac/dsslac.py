@@ -19,6 +19,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Rollout
 from stable_baselines3.common.utils import safe_mean, update_learning_rate
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_dsslac.allocator import keep_freed_memory
 from sb3_dsslac.buffers import SequenceReplayBuffer
 from sb3_dsslac.bursts import UpdateBursts, record_burst
 from sb3_dsslac.env_info import action_repeat_of, cost_from_info, episode_length_of
@@ -319,6 +320,8 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
+        if self.device.type == "cpu":  # the updates' freed tensors stay mapped for the next update (allocator.py)
+            keep_freed_memory()
         self.lagrange_raw = th.tensor(inverse_softplus(self.lagrange_init), dtype=th.float64)
         self.target_entropy = -float(self.policy.action_dim) if self.target_entropy == "auto" else float(self.target_entropy)
         self.ent_coef_optimizer: th.optim.Adam | None = None
