@@ -458,10 +458,9 @@ def floor_table(
     """
     lines = ["| | ms/update | GFLOP/s | updates/s |", "|---|---:|---:|---:|"]
     lines.append(f"| update | {update_ms:.2f} | | {1e3 / update_ms:.1f} |")
-    if free_ms is not None:
-        lines.append(f"| update with free convolutions | {free_ms:.2f} | | {1e3 / free_ms:.1f} |")
     kinds_ms = {kind: update_ms * arithmetic_ms[kind] / profiled_ms for kind in ARITHMETIC_KINDS}
     if free_ms is not None:
+        lines.append(f"| update with free convolutions | {free_ms:.2f} | | {1e3 / free_ms:.1f} |")
         kinds_ms["convolutions"] = update_ms - free_ms
     for kind, ms in kinds_ms.items():
         rate = f"{arithmetic_flops[kind] / (ms * 1e6):.1f}" if ms > 0 else "-"

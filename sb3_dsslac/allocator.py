@@ -10,7 +10,6 @@ these settings. Either setting alone was slower still (95-103 ms): setting one t
 """
 
 import ctypes
-import ctypes.util
 
 # mallopt's parameter numbers (glibc's malloc.h)
 M_TRIM_THRESHOLD = -1
@@ -22,12 +21,9 @@ TRIM_THRESHOLD_BYTES = 1024 * 1024 * 1024
 
 
 def _mallopt() -> "ctypes._CFuncPtr | None":
-    """glibc's ``mallopt``, None on another C library."""
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return None
+    """The process's own C library's ``mallopt`` (glibc's), None where it has none."""
     try:
-        return ctypes.CDLL(name).mallopt
+        return ctypes.CDLL(None).mallopt
     except (OSError, AttributeError):
         return None
 
