@@ -110,3 +110,16 @@ def test_subpixel_conv_transpose2d_gradients_compile_to_the_same_numbers():
         compiled = torch.compile(gradients, fullgraph=True)(fast)
     for got, want in zip(compiled, gradients(reference), strict=True):
         torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize("bias", [False, True])
+def test_subpixel_op_passes_torch_library_checks(channels_last: bool, bias: bool):
+    """The custom op's fake tensor (shapes and strides), autograd registration and schema agree with what it computes."""
+    layer = SubpixelConvTranspose2d(8, 3, 5, stride=2, padding=2, output_padding=1, bias=bias)
+    x = torch.randn(2, 8, 6, 6, requires_grad=True)
+    if channels_last:
+        x = x.detach().to(memory_format=torch.channels_last).requires_grad_()
+    out = layer(x)
+    assert out.shape == (2, 3, 12, 12) and out.is_contiguous()
+    torch.library.opcheck(torch.ops.sb3_dsslac.subpixel_conv_transpose2d, (x, layer.weight, layer.bias, 2, 2, 1))
