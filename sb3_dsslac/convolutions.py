@@ -76,11 +76,12 @@ def subpixel_conv_transpose2d(
     # Output pixel o = stride * q + r - padding sums x[q - i] * weight[r + stride * i]: the phase images' rows q
     first, last = padding // stride, (padding + size - 1) // stride
     before, after = taps - 1 - first, last - (height - 1)
+    phase_weight = subpixel_kernel(weight, stride)
     phase_bias = None if bias is None else bias.repeat_interleave(stride * stride)
     if before == after >= 0:  # the convolution's own zero padding: no padded copy of the input
-        phases = F.conv2d(x, subpixel_kernel(weight, stride), phase_bias, padding=before)
+        phases = F.conv2d(x, phase_weight, phase_bias, padding=before)
     else:
-        phases = F.conv2d(F.pad(x, (before, after, before, after)), subpixel_kernel(weight, stride), phase_bias)
+        phases = F.conv2d(F.pad(x, (before, after, before, after)), phase_weight, phase_bias)
     offset = padding - stride * first
     # The pixel shuffle as a permuted view, copied once (twice where it crops): half the time of F.pixel_shuffle's copy
     batch, _, rows, cols = phases.shape
