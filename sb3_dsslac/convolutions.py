@@ -4,7 +4,8 @@ parameters (names, shapes, initialisation) of the ``torch.nn`` layer it subclass
 
 - A convolution whose kernel covers its whole unpadded input (the encoder's last layer, 4x4 onto 4x4) and a transposed
   convolution from a 1x1 input (the decoder's first layer) are one matrix product each: about a fifth of oneDNN's time
-  for these shapes, forward and backward.
+  for these shapes, forward and backward. In a channels-last model the products read and write the images in their
+  (H, W, C) order, with the weights permuted to match: no copy to NCHW and back around them.
 - A stride-2 transposed convolution runs its forward pass as a stride-1 convolution onto ``stride**2`` phase images,
   interleaved by a pixel shuffle (a sub-pixel convolution: each output pixel sums the same products in another order),
   and its backward pass through ATen's own transposed-convolution gradient: oneDNN's transposed convolution onto 3
@@ -19,13 +20,21 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 
+def _is_channels_last(x: Tensor) -> bool:
+    """Whether a 4-d tensor lies in memory as (N, H, W, C) and not also as (N, C, H, W)."""
+    return x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
+
+
 class DenseConv2d(nn.Conv2d):
     """``nn.Conv2d`` on inputs of the kernel's size (one output) as one matrix product: (N, C, k, k) -> (N, C', 1, 1)."""
 
     def forward(self, x: Tensor) -> Tensor:
         if tuple(x.shape[-2:]) != self.kernel_size or self.padding != (0, 0):
             return super().forward(x)
-        out = F.linear(x.reshape(x.shape[0], -1), self.weight.reshape(self.out_channels, -1), self.bias)
+        weight = self.weight
+        if _is_channels_last(x):  # both flattened in (H, W, C) order: x as it lies in memory
+            x, weight = x.permute(0, 2, 3, 1), weight.permute(0, 2, 3, 1)
+        out = F.linear(x.reshape(x.shape[0], -1), weight.reshape(self.out_channels, -1), self.bias)
         return out.view(x.shape[0], self.out_channels, 1, 1)
 
 
@@ -36,8 +45,13 @@ class DenseConvTranspose2d(nn.ConvTranspose2d):
         if tuple(x.shape[-2:]) != (1, 1) or self.padding != (0, 0) or self.output_padding != (0, 0) or output_size:
             return super().forward(x, output_size)
         height, width = self.kernel_size
-        weight = self.weight.reshape(self.in_channels, -1)  # (C, C' * k * k)
-        out = x.reshape(x.shape[0], self.in_channels).mm(weight).view(x.shape[0], self.out_channels, height, width)
+        x = x.reshape(x.shape[0], self.in_channels)
+        if _is_channels_last(self.weight):  # a channels-last output, as ATen's layer would give: (N, k, k, C') in memory
+            weight = self.weight.permute(0, 2, 3, 1).reshape(self.in_channels, -1)  # (C, k * k * C')
+            out = x.mm(weight).view(x.shape[0], height, width, self.out_channels).permute(0, 3, 1, 2)
+        else:
+            weight = self.weight.reshape(self.in_channels, -1)  # (C, C' * k * k)
+            out = x.mm(weight).view(x.shape[0], self.out_channels, height, width)
         return out if self.bias is None else out + self.bias.view(1, -1, 1, 1)
 
 

@@ -140,6 +140,23 @@ def _image_decoder(z_dim: int, channels: int, size: int, widths: tuple[int, ...]
     return nn.Sequential(*layers)
 
 
+def channels_last_is_faster(size: int, widths: tuple[int, ...]) -> bool:
+    """
+    Whether the convolutions of ``size`` x ``size`` frames and these encoder ``widths`` run channels-last (NHWC),
+    the layout measured faster for them; the arithmetic is the same.
+
+    - The thesis's widths (32 channels up): NHWC on CPUs (oneDNN) and tensor cores alike.
+    - Narrower widths on 64x64 frames, on a CPU with AVX512: in NCHW, oneDNN reorders every activation to its blocked
+      layout and back, 7.4 of 27 ms of convolution work in a compiled ``cpu_pixels`` update, where its NHWC kernels
+      need no reorder (Intel Xeon, 2026-12-05; docs/performance.md).
+    - NCHW elsewhere: on 32x32 frames NHWC gained nothing on that CPU, and without AVX512 it was last measured slower
+      (6.2 against 7.2 updates/s at a quarter of the widths, an eager update of 2026-12-01).
+    """
+    if widths[0] >= 32:
+        return True
+    return size >= 64 and torch.backends.cpu.get_cpu_capability().startswith("AVX512")
+
+
 class LatentModel(nn.Module):
     """
     Stochastic latent variable model of Safe SLAC / DS-SLAC with latent ``z = [z1, z2]``.
@@ -236,9 +253,7 @@ class LatentModel(nn.Module):
         self.cost_decoder = build_mlp(transition_dim, 1, hidden_units, nn.ELU)
 
         init_weights(self)
-        if len(self.observation_shape) == 3 and self.image_channels[0] >= 32:
-            # NHWC convolutions at the thesis's widths: faster on CPUs (oneDNN) and tensor cores alike, the same
-            # arithmetic. At a quarter of the widths NCHW was faster on a CPU (7.2 against 6.2 updates/s, one thread)
+        if len(self.observation_shape) == 3 and channels_last_is_faster(self.observation_shape[-1], self.image_channels):
             self.to(memory_format=torch.channels_last)
 
     def encode(self, observations: Tensor) -> Tensor:

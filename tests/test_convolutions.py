@@ -8,11 +8,14 @@ from sb3_dsslac.convolutions import DenseConv2d, DenseConvTranspose2d, SubpixelC
 from sb3_dsslac.latent import LatentModel
 
 
-def _same_outputs_and_gradients(reference: nn.Module, fast: nn.Module, input_shape: tuple[int, ...]) -> None:
+def _same_outputs_and_gradients(
+    reference: nn.Module, fast: nn.Module, input_shape: tuple[int, ...], layout: torch.memory_format = torch.contiguous_format
+) -> torch.Tensor:
+    """Asserts the same outputs and gradients in float64, ``fast``'s weights and input in ``layout``; returns its output."""
     fast.load_state_dict(reference.state_dict())
-    x = torch.randn(input_shape, dtype=torch.float64, requires_grad=True)
-    reference.double(), fast.double()
-    expected, got = reference(x), fast(x)
+    x = torch.randn(input_shape, dtype=torch.float64)
+    reference.double(), fast.double().to(memory_format=layout)
+    expected, got = reference(x.requires_grad_()), fast(x.contiguous(memory_format=layout))
     assert got.shape == expected.shape
     torch.testing.assert_close(got, expected)
     grad_out = torch.randn_like(expected)
@@ -20,6 +23,7 @@ def _same_outputs_and_gradients(reference: nn.Module, fast: nn.Module, input_sha
     got_grads = torch.autograd.grad(got, [x, *fast.parameters()], grad_out)
     for want, have in zip(expected_grads, got_grads, strict=True):
         torch.testing.assert_close(have, want)
+    return got
 
 
 def test_dense_conv2d_is_the_convolution_of_a_kernel_sized_input():
@@ -32,6 +36,14 @@ def test_dense_conv2d_falls_back_on_larger_inputs():
 
 def test_dense_conv_transpose2d_is_the_transposed_convolution_of_one_pixel():
     _same_outputs_and_gradients(nn.ConvTranspose2d(80, 32, 4), DenseConvTranspose2d(80, 32, 4), (5, 80, 1, 1))
+
+
+def test_dense_layers_keep_a_channels_last_model_channels_last():
+    """Channels-last images in, channels-last images out, with no copy to NCHW between: the same numbers."""
+    layout = torch.channels_last
+    _same_outputs_and_gradients(nn.Conv2d(32, 64, 4), DenseConv2d(32, 64, 4), (5, 32, 4, 4), layout)
+    out = _same_outputs_and_gradients(nn.ConvTranspose2d(80, 32, 4), DenseConvTranspose2d(80, 32, 4), (5, 80, 1, 1), layout)
+    assert out.is_contiguous(memory_format=layout) and not out.is_contiguous()
 
 
 @pytest.mark.parametrize(

@@ -100,7 +100,7 @@ def test_each_actor_critic_batch_is_filtered_after_its_own_latent_update(monkeyp
         th.testing.assert_close(latents, expected)
 
 
-def test_channels_last_convolutions_match_contiguous_ones() -> None:
+def test_channels_last_convolutions_match_contiguous_ones(monkeypatch: pytest.MonkeyPatch) -> None:
     th.manual_seed(0)
     model = LatentModel((3, 64, 64), 2, feature_dim=32, z1_dim=4, z2_dim=8, hidden_units=(32, 32))
     conv_weight = model.encoder[0].weight
@@ -114,11 +114,14 @@ def test_channels_last_convolutions_match_contiguous_ones() -> None:
     loss.backward()
     reference.backward()
     th.testing.assert_close(model.decoder[0].weight.grad, contiguous.decoder[0].weight.grad, rtol=1e-4, atol=1e-4)
-    # Narrow convolutions stay NCHW, which was the faster layout for them on a CPU
-    narrow = LatentModel(
-        (3, 64, 64), 2, feature_dim=32, z1_dim=4, z2_dim=8, hidden_units=(32, 32), image_channels=(8, 16, 32, 64)
-    )
-    assert narrow.encoder[0].weight.is_contiguous() and narrow.decoder[-2].weight.is_contiguous()
+    # Narrow convolutions run channels-last only on 64x64 frames and a CPU with AVX512, where that layout was faster
+    for capability, size, channels_last in [("AVX512", 64, True), ("AVX512", 32, False), ("AVX2", 64, False)]:
+        monkeypatch.setattr(th.backends.cpu, "get_cpu_capability", lambda capability=capability: capability)
+        narrow = LatentModel(
+            (3, size, size), 2, feature_dim=32, z1_dim=4, z2_dim=8, hidden_units=(32, 32), image_channels=(8, 16, 32, 64)
+        )
+        layouts = {layer.weight.is_contiguous() for layer in (narrow.encoder[0], narrow.decoder[-2], narrow.decoder[0])}
+        assert layouts == {not channels_last}, (capability, size)
 
 
 def test_bf16_latent_loss_is_within_one_percent_of_fp32() -> None:
