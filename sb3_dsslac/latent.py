@@ -150,7 +150,8 @@ def channels_last_is_faster(size: int, widths: tuple[int, ...]) -> bool:
       layout and back, 7.4 of 27 ms of convolution work in a compiled ``cpu_pixels`` update, where its NHWC kernels
       need no reorder (Intel Xeon, 2026-12-05; docs/performance.md).
     - NCHW elsewhere: on 32x32 frames NHWC gained nothing on that CPU, and without AVX512 it was last measured slower
-      (6.2 against 7.2 updates/s at a quarter of the widths, an eager update of 2026-12-01).
+      (6.2 against 7.2 updates/s at a quarter of the widths, an eager update of 2026-12-01 on an AMD EPYC, the host
+      its commit, cb81e8e, names for its other figures).
     """
     if widths[0] >= 32:
         return True
