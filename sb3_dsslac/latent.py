@@ -146,16 +146,17 @@ def channels_last_is_faster(size: int, widths: tuple[int, ...]) -> bool:
     the layout measured faster for them; the arithmetic is the same.
 
     - The thesis's widths (32 channels up): NHWC on CPUs (oneDNN) and tensor cores alike.
-    - Narrower widths on 64x64 frames, on a CPU with AVX512: in NCHW, oneDNN reorders every activation to its blocked
-      layout and back, 7.4 of 27 ms of convolution work in a compiled ``cpu_pixels`` update, where its NHWC kernels
-      need no reorder (Intel Xeon, 2026-12-05; docs/performance.md).
-    - NCHW elsewhere: on 32x32 frames NHWC gained nothing on that CPU, and without AVX512 it was last measured slower
-      (6.2 against 7.2 updates/s at a quarter of the widths, an eager update of 2026-12-01 on an AMD EPYC, the host
-      its commit, cb81e8e, names for its other figures).
+    - Narrower widths on 64x64 frames, on an x86 CPU (AVX2 or AVX512): in NCHW, oneDNN reorders every activation to
+      its blocked layout and back, where its NHWC kernels need none. In a compiled ``cpu_pixels`` update on an Intel
+      Xeon (2026-12-05; docs/performance.md): 7.4 of 27 ms of oneDNN work on AVX512; with ATen, inductor, oneDNN and
+      MKL held to AVX2 on that CPU, 7.7 of 36 ms, and 61 against 67-72 ms per update. Not yet re-measured on an AVX2
+      CPU itself: on an AMD EPYC an eager update of 2026-12-01 ran NHWC slower, before the dense layers read it in place.
+    - NCHW elsewhere: on 32x32 frames NHWC gained nothing beyond the timings' spread (AVX512, and held to AVX2), and
+      other CPUs were not measured.
     """
     if widths[0] >= 32:
         return True
-    return size >= 64 and torch.backends.cpu.get_cpu_capability().startswith("AVX512")
+    return size >= 64 and torch.backends.cpu.get_cpu_capability().startswith("AVX")
 
 
 class LatentModel(nn.Module):

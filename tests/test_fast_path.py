@@ -114,8 +114,9 @@ def test_channels_last_convolutions_match_contiguous_ones(monkeypatch: pytest.Mo
     loss.backward()
     reference.backward()
     th.testing.assert_close(model.decoder[0].weight.grad, contiguous.decoder[0].weight.grad, rtol=1e-4, atol=1e-4)
-    # Narrow convolutions run channels-last only on 64x64 frames and a CPU with AVX512, where that layout was faster
-    for capability, size, channels_last in [("AVX512", 64, True), ("AVX512", 32, False), ("AVX2", 64, False)]:
+    # Narrow convolutions run channels-last only on 64x64 frames and an x86 CPU, where that layout was faster
+    cases = [("AVX512", 64, True), ("AVX2", 64, True), ("AVX512", 32, False), ("AVX2", 32, False), ("DEFAULT", 64, False)]
+    for capability, size, channels_last in cases:
         monkeypatch.setattr(th.backends.cpu, "get_cpu_capability", lambda capability=capability: capability)
         narrow = LatentModel(
             (3, size, size), 2, feature_dim=32, z1_dim=4, z2_dim=8, hidden_units=(32, 32), image_channels=(8, 16, 32, 64)
