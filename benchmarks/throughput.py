@@ -52,8 +52,8 @@ ENV_ID = "SafetyGym/PointGoal1-v0"
 
 class ThesisStyleUpdates:
     """
-    The reference code's update path around a ``DSSLAC`` model's networks (changed in place: NCHW convolutions and a
-    Python loop of Polyak updates).
+    The reference code's update path around a ``DSSLAC`` model's networks (changed in place: NCHW convolutions and
+    frames, and a Python loop of Polyak updates).
 
     :param model: a model whose replay buffer holds the frames to sample from
     """
@@ -63,6 +63,7 @@ class ThesisStyleUpdates:
         model.policy.latent.to(memory_format=th.contiguous_format)
         model.updates.step.update_targets = self._python_loop_polyak  # type: ignore[method-assign]
         buffer = model.replay_buffer
+        buffer.set_channels_last_frames(False)  # frames as the reference code keeps them, (C, H, W)
         length = buffer.sequence_length
         valid = buffer.valid_windows(length)
         starts, envs = valid // buffer.n_envs, valid % buffer.n_envs

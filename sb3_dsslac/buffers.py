@@ -11,11 +11,22 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_dsslac.env_info import cost_from_info
 
 
+def _channels_last(frames: np.ndarray) -> np.ndarray:
+    """Images (..., C, H, W) as (..., H, W, C): a view."""
+    return np.moveaxis(frames, -3, -1)
+
+
+def _channels_first(frames: np.ndarray) -> np.ndarray:
+    """Images (..., H, W, C) as (..., C, H, W): a view."""
+    return np.moveaxis(frames, -1, -3)
+
+
 class SequenceBatch(NamedTuple):
     """
     A batch of ``B`` windows of ``L = sequence_length`` consecutive transitions of one episode each.
 
-    :param observations: (B, L+1, *obs_shape) frames in the stored dtype (uint8 for images, float32 otherwise)
+    :param observations: (B, L+1, *obs_shape) frames in the stored dtype (uint8 for images, float32 otherwise); images
+        (C, H, W) with channels-last strides where the buffer stores them so (``set_channels_last_frames``)
     :param actions: (B, L, action_dim) float32 buffer actions (scaled to [-1, 1] by SB3)
     :param rewards: (B, L) float32
     :param costs: (B, L) float32, from ``info["cost"]``
@@ -44,6 +55,9 @@ class SequenceReplayBuffer(ReplayBuffer):
     last record holds the final (terminal or truncated) frame and no transition. A window is ``sequence_length + 1``
     consecutive records of one episode, so windows never cross episode boundaries and episodes shorter than
     ``sequence_length`` steps give none.
+
+    Images are stored (C, H, W), or (H, W, C) after ``set_channels_last_frames(True)``: a channels-last model then
+    reads the sampled frames without a transpose.
 
     :param buffer_size: Number of frame slots over all envs (each env gets ``buffer_size // n_envs``)
     :param observation_space: Box observation space (uint8 spaces are stored as uint8, others as float32)
@@ -102,6 +116,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         self.handle_timeout_termination = handle_timeout_termination
         self.sequence_length = sequence_length
         self.frame_dtype = np.uint8 if observation_space.dtype == np.uint8 else np.float32
+        self.channels_last_frames = False
 
         shape = (self.buffer_size, self.n_envs)
         self.observations = np.zeros((*shape, *self.obs_shape), dtype=self.frame_dtype)
@@ -135,6 +150,21 @@ class SequenceReplayBuffer(ReplayBuffer):
         self.episode_steps.fill(0)
         self._init_counters()
 
+    def set_channels_last_frames(self, channels_last: bool) -> None:
+        """
+        Store images (H, W, C) (``channels_last``) or (C, H, W) from now on, moving the frames stored so far; sampled
+        frames stay (C, H, W) tensors either way, with the strides of the stored order. No-op for vector observations.
+        """
+        if len(self.obs_shape) != 3 or channels_last == self.channels_last_frames:
+            return
+        n_rows = min(int(self._n_records.max()), self.buffer_size)
+        frames = (_channels_last if channels_last else _channels_first)(self.observations[:n_rows])
+        # The unwritten rows stay untouched zero pages
+        self.observations = np.zeros((self.buffer_size, self.n_envs, *frames.shape[2:]), dtype=self.frame_dtype)
+        self.observations[:n_rows] = frames
+        self.channels_last_frames = channels_last
+        self._device_copy = None
+
     def _windows_valid(self, starts: np.ndarray, envs: np.ndarray, length: int) -> np.ndarray:
         """Whether records at slots ``starts .. starts + length`` (mod ring) of ``envs`` are steps of one episode."""
         # ids equal at both ends: one episode; step difference == length: no unwritten slot and no wrap past the head
@@ -149,7 +179,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         if overwrite.any():
             # The oldest record leaves the ring, and with it the only window that could still start there
             self._n_windows -= int(self._windows_valid(slots[overwrite], envs[overwrite], self.sequence_length).sum())
-        self.observations[slots, envs] = frames
+        self.observations[slots, envs] = _channels_last(frames) if self.channels_last_frames else frames
         self.episode_ids[slots, envs] = episode_ids
         self.episode_steps[slots, envs] = steps
         self.actions[slots, envs] = 0.0
@@ -187,8 +217,10 @@ class SequenceReplayBuffer(ReplayBuffer):
         # An env also opens an episode when `obs` is not the frame it stored last (e.g. the env was reset
         # between two `learn` calls): the interrupted episode then ends there like a truncation.
         current = (self._n_records - 1) % self.buffer_size
-        stored = self.observations[current, all_envs].reshape(self.n_envs, -1)
-        moved = np.any(stored != obs.astype(self.frame_dtype).reshape(self.n_envs, -1), axis=1)
+        stored = self.observations[current, all_envs]
+        if self.channels_last_frames:
+            stored = _channels_first(stored)
+        moved = np.any(stored.reshape(self.n_envs, -1) != obs.astype(self.frame_dtype).reshape(self.n_envs, -1), axis=1)
         starting = np.flatnonzero(self._episode_start | moved)
         if len(starting) > 0:
             new_ids = self._next_episode_id + np.arange(len(starting))
@@ -249,7 +281,8 @@ class SequenceReplayBuffer(ReplayBuffer):
 
     def stored_observations(self) -> np.ndarray:
         """Every frame written so far, (n_frames, *obs_shape), in storage order."""
-        return self.observations[self.episode_ids >= 0]
+        stored = self.observations[self.episode_ids >= 0]
+        return _channels_first(stored) if self.channels_last_frames else stored
 
     def _stored_tensors(self) -> dict[str, th.Tensor]:
         """
@@ -325,9 +358,12 @@ class SequenceReplayBuffer(ReplayBuffer):
             return flat.index_select(0, flat_rows).view(len(indices), length, *tensor.shape[2:])
 
         length = self.sequence_length
+        observations = take("observations", rows.view(-1), length + 1)
+        if self.channels_last_frames:  # (B, L+1, H, W, C) -> (B, L+1, C, H, W), channels-last
+            observations = observations.permute(0, 1, 4, 2, 3)
         transition_rows = rows[:, :-1].reshape(-1)  # flattened once for the four transition fields
         return SequenceBatch(
-            observations=take("observations", rows.view(-1), length + 1),
+            observations=observations,
             actions=take("actions", transition_rows, length),
             rewards=take("rewards", transition_rows, length),
             costs=take("costs", transition_rows, length),
@@ -361,6 +397,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
+        self.channels_last_frames = False  # buffers pickled before frames could be stored channels-last
         self.__dict__.update(state)
         for name in self._STORAGE:
             stored = state[name]

@@ -1,7 +1,9 @@
 """DS-SLAC: Distributional Safe Stochastic Latent Actor-Critic as a Stable-Baselines3 off-policy algorithm."""
 
 import inspect
+import io
 import math
+import pathlib
 import warnings
 from collections import deque
 from typing import Any, ClassVar, TypeVar
@@ -320,6 +322,7 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
+        self.replay_buffer.set_channels_last_frames(self.policy.latent.channels_last)
         if self.device.type == "cpu":  # the updates' freed tensors stay mapped for the next update (allocator.py)
             keep_freed_memory()
         self.lagrange_raw = th.tensor(inverse_softplus(self.lagrange_init), dtype=th.float64)
@@ -541,6 +544,11 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
                 reset_num_timesteps=reset_num_timesteps,
                 progress_bar=progress_bar,
             )
+
+    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
+        """SB3's ``load_replay_buffer``, with the frames then stored in the layout of this model's convolutions."""
+        super().load_replay_buffer(path, truncate_last_traj)
+        self.replay_buffer.set_channels_last_frames(self.policy.latent.channels_last)
 
     def _excluded_save_params(self) -> list[str]:
         # The training envs' rollout state, and the update engine that _setup_model rebuilds

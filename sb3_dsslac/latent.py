@@ -255,7 +255,11 @@ class LatentModel(nn.Module):
         self.cost_decoder = build_mlp(transition_dim, 1, hidden_units, nn.ELU)
 
         init_weights(self)
-        if len(self.observation_shape) == 3 and channels_last_is_faster(self.observation_shape[-1], self.image_channels):
+        # The convolutions' layout; the replay buffer stores frames in it (SequenceReplayBuffer.set_channels_last_frames)
+        self.channels_last = len(self.observation_shape) == 3 and channels_last_is_faster(
+            self.observation_shape[-1], self.image_channels
+        )
+        if self.channels_last:
             self.to(memory_format=torch.channels_last)
 
     def encode(self, observations: Tensor) -> Tensor:

@@ -356,6 +356,42 @@ def test_image_frames_are_sampled_as_uint8():
     np.testing.assert_array_equal(batch.observations[:, :, 0, 0, 0].numpy(), first[:, None].numpy() + np.arange(3))
 
 
+def image_buffer(channels_last_from: int | None, n_steps: int = 40) -> SequenceReplayBuffer:
+    """Distinct (3, 4, 5) frames of 2 envs, episodes of 7 steps, stored channels-last from step ``channels_last_from``."""
+    obs_space = spaces.Box(0, 255, shape=(3, 4, 5), dtype=np.uint8)
+    buffer = SequenceReplayBuffer(60, obs_space, spaces.Box(-1, 1, (2,)), device="cpu", n_envs=2, sequence_length=3)
+    pixels = np.arange(2 * 60).reshape(2, 3, 4, 5)
+    for t in range(n_steps):
+        if t == channels_last_from:
+            buffer.set_channels_last_frames(True)
+        obs, next_obs = ((pixels + 7 * (s % 8)) % 256 for s in (t, t + 1))
+        done = np.full(2, t % 7 == 6)
+        buffer.add(obs, next_obs, np.zeros((2, 2)), np.zeros(2), done, [{"cost": 0.0}] * 2)
+    return buffer
+
+
+@pytest.mark.parametrize("channels_last_from", [0, 15])  # before the first frame, and moving the frames stored so far
+def test_channels_last_frames_sample_the_same_windows(channels_last_from):
+    plain, channels_last = image_buffer(None), image_buffer(channels_last_from)
+    assert channels_last.observations.shape[-3:] == (4, 5, 3)
+    assert_same_samples(plain, channels_last)
+    np.testing.assert_array_equal(channels_last.stored_observations(), plain.stored_observations())
+    frames = channels_last.sample(8).observations.view(-1, 3, 4, 5)  # as the encoder reads them: no copy
+    assert frames.is_contiguous(memory_format=th.channels_last)
+    assert_same_samples(plain, pickle.loads(pickle.dumps(channels_last)))
+    channels_last.set_channels_last_frames(False)
+    assert channels_last.observations.shape[-3:] == (3, 4, 5)
+    assert_same_samples(plain, channels_last)
+
+
+def test_buffers_pickled_before_channels_last_frames_load_as_channels_first():
+    buffer = image_buffer(None)
+    del buffer.__dict__["channels_last_frames"]  # as pickled by the versions before the attribute
+    restored = pickle.loads(pickle.dumps(buffer))
+    assert restored.channels_last_frames is False
+    assert_same_samples(image_buffer(None), restored)
+
+
 class CountingEnv(gym.Env):
     """Observation = (env id, episode, step); ends by termination every 13 steps or a time limit at 9 (odd episodes)."""
 

@@ -56,12 +56,16 @@ def test_dense_layers_keep_a_channels_last_model_channels_last():
         ((3, 5), 3, 3, 0, 2, 6),
     ],
 )
-def test_subpixel_conv_transpose2d_is_the_transposed_convolution(channels, kernel, stride, padding, output_padding, size):
+@pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
+def test_subpixel_conv_transpose2d_is_the_transposed_convolution(
+    channels, kernel, stride, padding, output_padding, size, layout
+):
     layers = [
         cls(*channels, kernel, stride=stride, padding=padding, output_padding=output_padding)
         for cls in (nn.ConvTranspose2d, SubpixelConvTranspose2d)
     ]
-    _same_outputs_and_gradients(*layers, (3, channels[0], size, size))
+    out = _same_outputs_and_gradients(*layers, (3, channels[0], size, size), layout)
+    assert out.is_contiguous(memory_format=layout)  # the layout of the model's other layers: no copy to or from it
 
 
 def test_subpixel_conv_transpose2d_compiles_to_the_same_numbers():
@@ -130,8 +134,8 @@ def test_subpixel_op_passes_torch_library_checks(channels_last: bool, bias: bool
     """The custom op's fake tensor (shapes and strides), autograd registration and schema agree with what it computes."""
     layer = SubpixelConvTranspose2d(8, 3, 5, stride=2, padding=2, output_padding=1, bias=bias)
     x = torch.randn(2, 8, 6, 6, requires_grad=True)
-    if channels_last:
-        x = x.detach().to(memory_format=torch.channels_last).requires_grad_()
+    layout = torch.channels_last if channels_last else torch.contiguous_format
+    x = x.detach().contiguous(memory_format=layout).requires_grad_()
     out = layer(x)
-    assert out.shape == (2, 3, 12, 12) and out.is_contiguous()
+    assert out.shape == (2, 3, 12, 12) and out.is_contiguous(memory_format=layout)
     torch.library.opcheck(torch.ops.sb3_dsslac.subpixel_conv_transpose2d, (x, layer.weight, layer.bias, 2, 2, 1))

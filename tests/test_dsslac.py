@@ -230,6 +230,22 @@ def test_replay_buffer_save_load(tmp_path) -> None:
     assert other.replay_buffer.nbytes == model.replay_buffer.nbytes
 
 
+def test_frames_are_stored_in_the_layout_of_the_convolutions(tmp_path, monkeypatch) -> None:
+    narrow = {**SMALL_POLICY, "image_channels": (4, 8, 8, 16)}
+    monkeypatch.setattr(th.backends.cpu, "get_cpu_capability", lambda: "AVX512")  # 64x64 frames: channels-last
+    model = small_model(HazardPointEnv(obs_type="pixels", size=64), policy_kwargs=narrow)
+    assert model.policy.latent.channels_last and model.replay_buffer.channels_last_frames
+    model.learn(45)
+    assert model._n_updates > 0
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    monkeypatch.setattr(th.backends.cpu, "get_cpu_capability", lambda: "DEFAULT")  # NCHW
+    other = small_model(HazardPointEnv(obs_type="pixels", size=64), policy_kwargs=narrow)
+    assert not other.policy.latent.channels_last
+    other.load_replay_buffer(tmp_path / "buffer.pkl")
+    assert not other.replay_buffer.channels_last_frames
+    np.testing.assert_array_equal(other.replay_buffer.stored_observations(), model.replay_buffer.stored_observations())
+
+
 class DiscreteHazardEnv(HazardPointEnv):
     def __init__(self) -> None:
         super().__init__()
