@@ -24,7 +24,8 @@ THESIS_LR_DECAY_MILESTONE = 30_000 + 400 * 1000 // 2
 # - multiplier step size 1e-3: at 2e-4 it barely moved in 300k simulator steps while the cost stayed at 60-70.
 # By 300k simulator steps it keeps the cost under the budget but learns no reward; cpu_pixels32 learns it. On a 2-core
 # Intel Xeon (AVX512) its compiled update runs channels-last at 22.6 updates/s, 1.50x the speed issue's reference
-# (07cfb16) over 20 rounds, and a 30k-simulator-step run costs 1.38-1.40x less CPU (docs/performance.md)
+# (07cfb16) over 20 rounds, and a 30k-simulator-step run costs 1.38-1.40x less CPU; with that CPU held to AVX2, 17.6
+# updates/s, 1.30x (docs/performance.md)
 CPU_PIXELS: dict[str, Any] = {
     "image_noise": 0.1,
     "latent_learning_rate": 1e-3,
