@@ -140,23 +140,20 @@ def _image_decoder(z_dim: int, channels: int, size: int, widths: tuple[int, ...]
     return nn.Sequential(*layers)
 
 
-def channels_last_is_faster(size: int, widths: tuple[int, ...]) -> bool:
+def channels_last_is_faster(widths: tuple[int, ...]) -> bool:
     """
-    Whether the convolutions of ``size`` x ``size`` frames and these encoder ``widths`` run channels-last (NHWC),
-    the layout measured faster for them; the arithmetic is the same.
+    Whether the convolutions of these encoder ``widths`` run channels-last (NHWC), the layout measured faster for them
+    (the replay buffer then stores the frames channels-last too); the arithmetic is the same.
 
     - The thesis's widths (32 channels up): NHWC on CPUs (oneDNN) and tensor cores alike.
-    - Narrower widths on 64x64 frames, on an x86 CPU (AVX2 or AVX512): in NCHW, oneDNN reorders every activation to
-      its blocked layout and back, where its NHWC kernels need none. In a compiled ``cpu_pixels`` update on an Intel
-      Xeon (2026-12-05; docs/performance.md): 7.4 of 27 ms of oneDNN work on AVX512; with ATen, inductor, oneDNN and
-      MKL held to AVX2 on that CPU, 7.7 of 36 ms, and 61 against 67-72 ms per update. Not yet re-measured on an AVX2
-      CPU itself: on an AMD EPYC an eager update of 2026-12-01 ran NHWC slower, before the dense layers read it in place.
-    - NCHW elsewhere: on 32x32 frames NHWC gained nothing beyond the timings' spread (AVX512, and held to AVX2), and
-      other CPUs were not measured.
+    - Narrower widths on an x86 CPU (AVX2 or AVX512): in NCHW, oneDNN reorders every activation to its blocked layout
+      and back, where its NHWC kernels need none: 7.4 of 27 ms of oneDNN work in a compiled ``cpu_pixels`` update on an
+      Intel Xeon's AVX512, 7.7 of 36 ms with ATen, inductor, oneDNN and MKL held to AVX2 on it (2026-12-05,
+      docs/performance.md). With the frames stored channels-last, NHWC ran 1.05x (AVX512) and 1.09x (held to AVX2) the
+      NCHW updates/s on 32x32 frames too. Not yet re-measured on an AVX2 CPU itself (an AMD EPYC).
+    - NCHW elsewhere: other CPUs were not measured.
     """
-    if widths[0] >= 32:
-        return True
-    return size >= 64 and torch.backends.cpu.get_cpu_capability().startswith("AVX")
+    return widths[0] >= 32 or torch.backends.cpu.get_cpu_capability().startswith("AVX")
 
 
 class LatentModel(nn.Module):
@@ -256,9 +253,7 @@ class LatentModel(nn.Module):
 
         init_weights(self)
         # The convolutions' layout; the replay buffer stores frames in it (SequenceReplayBuffer.set_channels_last_frames)
-        self.channels_last = len(self.observation_shape) == 3 and channels_last_is_faster(
-            self.observation_shape[-1], self.image_channels
-        )
+        self.channels_last = len(self.observation_shape) == 3 and channels_last_is_faster(self.image_channels)
         if self.channels_last:
             self.to(memory_format=torch.channels_last)
 
