@@ -55,7 +55,8 @@ CPU_PIXELS: dict[str, Any] = {
 # frame a hazard just ahead has been in the belief's last 4 frames before 83% of the hazard costs (74% at 2); the margin
 # keeps single evaluations under the budget. By 300k simulator steps: reward 6.89, cost 17.2 (3 seeds), in 44 CPU minutes
 # per seed on an AMD EPYC (docs/pixel_learning.md). On a 2-core Intel Xeon (AVX512) a 300k run took 34.1 CPU minutes,
-# beside 39.9 for the code of the speed issue's reference (07cfb16) in the same run (benchmarks/results/speed_300k_intel_xeon)
+# beside 39.9 for the code of the speed issue's reference (07cfb16) in the same run (benchmarks/results/speed_300k_intel_xeon);
+# its update has since gained 1.05x there (1.09x held to AVX2) from channels-last convolutions and frames
 CPU_PIXELS32: dict[str, Any] = {**CPU_PIXELS, "learning_starts": 5_000, "gradient_steps": 96, "cost_target": 20.0}
 
 PRESETS: dict[str, dict[str, Any]] = {
