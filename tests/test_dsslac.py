@@ -232,7 +232,7 @@ def test_replay_buffer_save_load(tmp_path) -> None:
 
 def test_frames_are_stored_in_the_layout_of_the_convolutions(tmp_path, monkeypatch) -> None:
     narrow = {**SMALL_POLICY, "image_channels": (4, 8, 8, 16)}
-    monkeypatch.setattr(th.backends.cpu, "get_cpu_capability", lambda: "AVX512")  # 64x64 frames: channels-last
+    monkeypatch.setattr(th.backends.cpu, "get_cpu_capability", lambda: "AVX512")  # narrow widths on x86: channels-last
     model = small_model(HazardPointEnv(obs_type="pixels", size=64), policy_kwargs=narrow)
     assert model.policy.latent.channels_last and model.replay_buffer.channels_last_frames
     model.learn(45)
