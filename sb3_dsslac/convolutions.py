@@ -15,6 +15,12 @@ parameters (names, shapes, initialisation) of the ``torch.nn`` layer it subclass
   update), while the op writes its output once, dense in the model's layout, and those loops vectorise. Channels-last,
   the phases' channels are ordered so that the shuffle copies runs of ``stride * C_out`` values, and with the replay
   buffer's frames stored channels-last too the image loss reads both images in one order.
+- On an AVX512 CPU a channels-last convolution onto 8 channels or fewer (the encoder's first layer, and the gradients of
+  the decoder's output layer, which have its shapes) runs column-paired: two adjacent output columns per output pixel,
+  twice the channels, a kernel ``stride`` columns wider. oneDNN fills its 16-float registers with 16 channels but half
+  of them with 8; the paired output lies in memory as the plain one, so it is a view. The forward pass of 160 frames
+  onto 8 channels took 2.93 against 3.46 ms, its weight gradient 2.34 against 3.33 ms (Intel Xeon, one thread), for
+  ``(kernel + stride) / kernel`` the multiply-adds (the zero taps).
 """
 
 import torch
@@ -25,6 +31,87 @@ from torch import Tensor, nn
 def _is_channels_last(x: Tensor) -> bool:
     """Whether a 4-d tensor lies in memory as (N, H, W, C) and not also as (N, C, H, W)."""
     return x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
+
+
+# Whether ATen runs AVX512 kernels here (read once: the compiled update reads it as a constant), whose registers hold 16
+# floats: an output of 8 channels or fewer fills half of one
+PAIR_NARROW_OUTPUTS = torch.backends.cpu.get_cpu_capability() == "AVX512"
+PAIRED_MAX_CHANNELS = 8
+
+
+def _paired_width(width: int, kernel: int, stride: int, padding: int) -> int | None:
+    """The column-paired output width of a convolution along one axis, None where it is not half the plain one."""
+    plain = (width + 2 * padding - kernel) // stride + 1
+    paired = (width + 2 * padding - kernel - stride) // (2 * stride) + 1
+    return paired if plain == 2 * paired else None
+
+
+def pairs_columns(x: Tensor, out_channels: int, kernel: int, stride: int, padding: int) -> bool:
+    """Whether ``column_paired_conv2d`` computes this convolution of ``x`` (see the module's docstring)."""
+    narrow = PAIR_NARROW_OUTPUTS and out_channels <= PAIRED_MAX_CHANNELS and x.device.type == "cpu"
+    return narrow and _is_channels_last(x) and _paired_width(x.shape[-1], kernel, stride, padding) is not None
+
+
+def _paired_kernel(weight: Tensor, stride: int) -> Tensor:
+    """(C', C, kh, kw) -> (2 C', C, kh, kw + stride): the kernels of an even output column, then of the odd one."""
+    return torch.cat([F.pad(weight, (0, stride)), F.pad(weight, (stride, 0))]).contiguous(memory_format=torch.channels_last)
+
+
+def _unpaired(paired: Tensor, channels: int) -> Tensor:
+    """(N, 2 C, H, W / 2) channels-last -> the same memory as (N, C, H, W), channels-last."""
+    batch, _, height, half_width = paired.shape
+    return paired.permute(0, 2, 3, 1).reshape(batch, height, 2 * half_width, channels).permute(0, 3, 1, 2)
+
+
+def column_paired_conv2d(
+    x: Tensor, weight: Tensor, bias: Tensor | None, stride: tuple[int, int], padding: tuple[int, int]
+) -> Tensor:
+    """
+    ``F.conv2d`` of a channels-last ``x`` (N, C, H, W) with two adjacent output columns computed as one output pixel of
+    twice the channels; for convolutions where ``pairs_columns`` holds. Differentiable; the output is channels-last.
+    """
+    paired = F.conv2d(
+        x,
+        _paired_kernel(weight, stride[1]),
+        None if bias is None else bias.repeat(2),
+        stride=(stride[0], 2 * stride[1]),
+        padding=padding,
+    )
+    return _unpaired(paired, weight.shape[0])
+
+
+def column_paired_weight_grad(x: Tensor, grad_output: Tensor, weight: Tensor, stride: int, padding: int) -> Tensor:
+    """The gradient of ``column_paired_conv2d(x, weight, None, stride, padding)``'s weight for ``grad_output``."""
+    batch, channels, height, width = grad_output.shape
+    paired_grad = grad_output.permute(0, 2, 3, 1).reshape(batch, height, width // 2, 2 * channels).permute(0, 3, 1, 2)
+    paired_weight = _paired_kernel(weight, stride)
+    (_, paired, _) = torch.ops.aten.convolution_backward(
+        paired_grad,
+        x,
+        paired_weight,
+        None,
+        [stride, 2 * stride],
+        [padding, padding],
+        [1, 1],
+        False,
+        [0, 0],
+        1,
+        [False, True, False],
+    )
+    kernel = weight.shape[-1]
+    return paired[:channels, :, :, :kernel] + paired[channels:, :, :, stride:]
+
+
+class ColumnPairedConv2d(nn.Conv2d):
+    """``nn.Conv2d`` that runs column-paired where ``pairs_columns`` holds (numeric padding, no dilation or groups)."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        if isinstance(self.padding, str) or self.groups != 1 or self.dilation != (1, 1) or self.padding_mode != "zeros":
+            return super().forward(x)
+        (_, kernel), (_, stride), (_, padding) = self.kernel_size, self.stride, self.padding
+        if not pairs_columns(x, self.out_channels, kernel, stride, padding):
+            return super().forward(x)
+        return column_paired_conv2d(x, self.weight, self.bias, self.stride, self.padding)  # type: ignore[arg-type]
 
 
 class DenseConv2d(nn.Conv2d):
@@ -145,11 +232,22 @@ def _save_for_backward(ctx, inputs: tuple, output: Tensor) -> None:
 
 
 def _backward(ctx, grad: Tensor) -> tuple:
-    """The transposed convolution's gradients from ATen's own kernel (the sub-pixel form's would be slower)."""
+    """
+    The transposed convolution's gradients from ATen's own kernel (the sub-pixel form's would be slower), or where its
+    input has few channels, from the column-paired convolution whose adjoint it is: the gradient of ``x`` is that
+    convolution of ``grad`` with the same weight, and the weight's gradient that convolution's weight gradient for ``x``.
+    """
     x, weight = ctx.saved_tensors
     stride, padding, output_padding = ctx.geometry
+    grad = grad.contiguous(memory_format=_subpixel_layout(x, weight))
+    if pairs_columns(grad, weight.shape[0], weight.shape[-1], stride, padding):
+        needs_x, needs_weight, needs_bias = ctx.needs_input_grad[:3]
+        grad_x = column_paired_conv2d(grad, weight, None, (stride, stride), (padding, padding)) if needs_x else None
+        grad_weight = column_paired_weight_grad(grad, x, weight, stride, padding) if needs_weight else None
+        grad_bias = grad.sum(dim=(0, 2, 3)) if ctx.has_bias and needs_bias else None
+        return grad_x, grad_weight, grad_bias, None, None, None
     grad_x, grad_weight, grad_bias = torch.ops.aten.convolution_backward(
-        grad.contiguous(memory_format=_subpixel_layout(x, weight)),
+        grad,
         x,
         weight,
         [weight.shape[1]] if ctx.has_bias else None,

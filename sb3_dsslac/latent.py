@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from sb3_dsslac.convolutions import DenseConv2d, DenseConvTranspose2d, SubpixelConvTranspose2d
+from sb3_dsslac.convolutions import ColumnPairedConv2d, DenseConv2d, DenseConvTranspose2d, SubpixelConvTranspose2d
 from sb3_dsslac.fused_rollout import posterior_steps
 from sb3_dsslac.gaussian import STD_EPS, GaussianBounds
 
@@ -120,7 +120,7 @@ def _image_encoder(channels: int, size: int, feature_dim: int, widths: tuple[int
     layers: list[nn.Module] = []
     in_ch = channels
     for out_ch, kernel, pad in specs:
-        layers += [nn.Conv2d(in_ch, out_ch, kernel, stride=2, padding=pad), nn.ELU()]
+        layers += [ColumnPairedConv2d(in_ch, out_ch, kernel, stride=2, padding=pad), nn.ELU()]
         in_ch = out_ch
     layers += [DenseConv2d(in_ch, feature_dim, 4, stride=1, padding=0), nn.ELU()]
     return nn.Sequential(*layers)

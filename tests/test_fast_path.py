@@ -9,12 +9,12 @@ import pytest
 import torch as th
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_dsslac import DSSLAC
-from sb3_dsslac import numerics
+from sb3_dsslac import DSSLAC, convolutions, numerics
+from sb3_dsslac import latent as latent_module
 from sb3_dsslac.dispatch import DispatchCounter, optimizer_step_tensors
 from sb3_dsslac.latent import LatentModel
 from tests.synthetic_envs import HazardPointEnv
-from tests.test_dsslac import SMALL, small_model
+from tests.test_dsslac import SMALL, SMALL_POLICY, small_model
 
 
 def image_batch(size: int, batch: int = 4, steps: int = 3, seed: int = 0) -> tuple[th.Tensor, ...]:
@@ -138,11 +138,15 @@ def test_bf16_latent_loss_is_within_one_percent_of_fp32() -> None:
     assert abs(parts["image_loss"].item() - reference_parts["image_loss"].item()) <= 1e-2 * reference_parts["image_loss"].abs()
 
 
-def warmed_up_pair(**fast: object) -> tuple[DSSLAC, DSSLAC]:
-    """Two models with the same weights, optimizer states and replay buffer, the second with ``fast`` keywords."""
-    plain = small_model(HazardPointEnv(obs_type="pixels"), learning_starts=10_000)
+def warmed_up_pair(policy_kwargs: dict | None = None, **fast: object) -> tuple[DSSLAC, DSSLAC]:
+    """
+    Two models with the same weights, optimizer states and replay buffer, both of ``policy_kwargs`` (added to the small
+    policy's), the second with ``fast`` keywords.
+    """
+    policy_kwargs = {**SMALL_POLICY, **(policy_kwargs or {})}
+    plain = small_model(HazardPointEnv(obs_type="pixels"), learning_starts=10_000, policy_kwargs=policy_kwargs)
     plain.learn(60)  # warm-up data only
-    other = small_model(HazardPointEnv(obs_type="pixels"), **fast)
+    other = small_model(HazardPointEnv(obs_type="pixels"), policy_kwargs=policy_kwargs, **fast)
     other.policy.load_state_dict(plain.policy.state_dict())
     other.replay_buffer = plain.replay_buffer
     for model in (plain, other):
@@ -172,10 +176,14 @@ LATENT_STATISTICS = {
 # Inductor draws its own random numbers unless told to use eager's generator (its config's own patch: monkeypatch's undo
 # deletes the setting, and later compilations in the process then fail)
 @th._inductor.config.patch(fallback_random=True)
-def test_compiled_update_matches_eager() -> None:
+def test_compiled_update_matches_eager(monkeypatch) -> None:
     # Minutes on 2 cores with a cold Inductor cache (17 s with a warm one): torch.compile builds the whole gradient step
-    # and the burst's last actor-critic step with Inductor's C++ kernels, whatever the networks' sizes
-    eager, compiled = warmed_up_pair(compile_updates=True)
+    # and the burst's last actor-critic step with Inductor's C++ kernels, whatever the networks' sizes. The cpu_pixels
+    # presets' narrow first layer, channels-last and column-paired (as on an AVX512 CPU), whatever this CPU
+    monkeypatch.setattr(latent_module, "channels_last_is_faster", lambda widths: True)
+    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", True)
+    eager, compiled = warmed_up_pair({"image_channels": (8, 8, 16, 16)}, compile_updates=True)
+    assert compiled.policy.latent.channels_last
     indices = eager.replay_buffer.sample_indices(3, eager.latent_batch_size + eager.batch_size)
     with warnings.catch_warnings():
         warnings.filterwarnings("error", message="compile_updates")  # no silent fallback to eager
