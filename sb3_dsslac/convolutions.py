@@ -20,9 +20,7 @@ parameters (names, shapes, initialisation) of the ``torch.nn`` layer it subclass
   twice the channels, a kernel ``stride`` columns wider. oneDNN fills its 16-float registers with 16 channels but half
   of them with 8; the paired output lies in memory as the plain one, so it is a view. The forward pass of 160 frames
   onto 8 channels took 2.93 against 3.46 ms, its weight gradient 2.34 against 3.33 ms (Intel Xeon, one thread), for
-  ``(kernel + stride) / kernel`` the multiply-adds (the zero taps). Likewise the input gradient of a stride-2
-  convolution from 8 channels or fewer (the encoder's second layer) reads its input as column pairs, stride 1 across
-  them: 0.81 against 1.47 ms for 80 frames of 32x32 (a custom op, whose backward pass picks the form).
+  ``(kernel + stride) / kernel`` the multiply-adds (the zero taps).
 """
 
 import torch
@@ -82,18 +80,13 @@ def column_paired_conv2d(
     return _unpaired(paired, weight.shape[0])
 
 
-def _paired(x: Tensor) -> Tensor:
-    """(N, C, H, W) channels-last -> the same memory as (N, 2 C, H, W / 2): each pixel with its right neighbour."""
-    batch, channels, height, width = x.shape
-    return x.permute(0, 2, 3, 1).reshape(batch, height, width // 2, 2 * channels).permute(0, 3, 1, 2)
-
-
 def column_paired_weight_grad(x: Tensor, grad_output: Tensor, weight: Tensor, stride: int, padding: int) -> Tensor:
     """The gradient of ``column_paired_conv2d(x, weight, None, stride, padding)``'s weight for ``grad_output``."""
-    channels = grad_output.shape[1]
+    batch, channels, height, width = grad_output.shape
+    paired_grad = grad_output.permute(0, 2, 3, 1).reshape(batch, height, width // 2, 2 * channels).permute(0, 3, 1, 2)
     paired_weight = _paired_kernel(weight, stride)
     (_, paired, _) = torch.ops.aten.convolution_backward(
-        _paired(grad_output),
+        paired_grad,
         x,
         paired_weight,
         None,
@@ -109,117 +102,16 @@ def column_paired_weight_grad(x: Tensor, grad_output: Tensor, weight: Tensor, st
     return paired[:channels, :, :, :kernel] + paired[channels:, :, :, stride:]
 
 
-def _input_pairs(width: int, kernel: int, padding: int) -> tuple[int, int, int] | None:
-    """
-    How a stride-2 convolution along one axis reads its input as column pairs: (kernel width in pairs, padding in pairs,
-    output columns past the plain ones), None where the pairs cannot give every plain output.
-    """
-    pad_pairs = (padding + 1) // 2
-    kernel_pairs = (kernel - 1 - padding) // 2 + pad_pairs + 1
-    extra = (width // 2 + 2 * pad_pairs - kernel_pairs + 1) - ((width + 2 * padding - kernel) // 2 + 1)
-    return (kernel_pairs, pad_pairs, extra) if width % 2 == 0 and extra >= 0 else None
-
-
-def pairs_input_columns(x: Tensor, kernel: int, stride: int, padding: int) -> bool:
-    """Whether ``column_paired_input_grad`` computes the input gradient of this convolution of ``x``."""
-    narrow = PAIR_NARROW_OUTPUTS and x.shape[1] <= PAIRED_MAX_CHANNELS and x.device.type == "cpu" and stride == 2
-    return narrow and _is_channels_last(x) and _input_pairs(x.shape[-1], kernel, padding) is not None
-
-
-def column_paired_input_grad(grad_output: Tensor, x: Tensor, weight: Tensor, stride: int, padding: int) -> Tensor:
-    """
-    The gradient of ``F.conv2d(x, weight, stride=stride, padding=padding)``'s input ``x`` (where ``pairs_input_columns``
-    holds) as the input gradient of a convolution of ``x`` read as column pairs: stride 1 across the pairs, a kernel
-    of ``(kernel_pairs, 2 C)`` columns whose unused taps are zero. That gradient has 2 C channels where the plain one
-    has C, and lies in memory as it.
-    """
-    out_channels, channels, rows, kernel = weight.shape
-    kernel_pairs, pad_pairs, extra = _input_pairs(x.shape[-1], kernel, padding)  # type: ignore[misc]
-    # Tap kx of the plain kernel reads pair j, column dx of it, where 2 j + dx = kx + 2 pad_pairs - padding
-    left = 2 * pad_pairs - padding
-    taps = F.pad(weight, (left, 2 * kernel_pairs - kernel - left)).view(out_channels, channels, rows, kernel_pairs, 2)
-    paired_weight = taps.permute(0, 4, 1, 2, 3).reshape(out_channels, 2 * channels, rows, kernel_pairs)
-    (paired_grad, _, _) = torch.ops.aten.convolution_backward(
-        F.pad(grad_output, (0, extra)).contiguous(memory_format=torch.channels_last),
-        _paired(x),
-        paired_weight.contiguous(memory_format=torch.channels_last),
-        None,
-        [stride, 1],
-        [padding, pad_pairs],
-        [1, 1],
-        False,
-        [0, 0],
-        1,
-        [True, False, False],
-    )
-    return _unpaired(paired_grad, channels)
-
-
-@torch.library.custom_op("sb3_dsslac::narrow_input_conv2d", mutates_args=())
-def _narrow_input_op(x: Tensor, weight: Tensor, bias: Tensor | None, stride: int, padding: int) -> Tensor:
-    """``F.conv2d`` whose input gradient ``column_paired_input_grad`` computes: (N, C, H, W) -> (N, C', H', W')."""
-    return F.conv2d(x, weight, bias, stride, padding)
-
-
-@_narrow_input_op.register_fake
-def _(x: Tensor, weight: Tensor, bias: Tensor | None, stride: int, padding: int) -> Tensor:
-    rows, cols = ((size + 2 * padding - weight.shape[-1]) // stride + 1 for size in x.shape[-2:])
-    shape = (x.shape[0], weight.shape[0], rows, cols)
-    return torch.empty(shape, dtype=x.dtype, device=x.device, memory_format=_output_layout(x, weight))
-
-
-def _save_narrow_input(ctx, inputs: tuple, output: Tensor) -> None:
-    x, weight, bias, stride, padding = inputs
-    ctx.save_for_backward(x, weight)
-    ctx.geometry = (stride, padding)
-    ctx.has_bias = bias is not None
-
-
-def _narrow_input_backward(ctx, grad: Tensor) -> tuple:
-    """The input's gradient column-paired, the weight's and the bias's from ATen's own kernel."""
-    x, weight = ctx.saved_tensors
-    stride, padding = ctx.geometry
-    needs_x, needs_weight, needs_bias = ctx.needs_input_grad[:3]
-    grad = grad.contiguous(memory_format=_output_layout(x, weight))
-    grad_x = column_paired_input_grad(grad, x, weight, stride, padding) if needs_x else None
-    grad_weight, grad_bias = None, None
-    if needs_weight or (ctx.has_bias and needs_bias):
-        _, grad_weight, grad_bias = torch.ops.aten.convolution_backward(
-            grad,
-            x,
-            weight,
-            [weight.shape[0]] if ctx.has_bias else None,
-            [stride, stride],
-            [padding, padding],
-            [1, 1],
-            False,
-            [0, 0],
-            1,
-            [False, needs_weight, ctx.has_bias and needs_bias],
-        )
-    return grad_x, grad_weight, grad_bias, None, None
-
-
-_narrow_input_op.register_autograd(_narrow_input_backward, setup_context=_save_narrow_input)
-
-
 class ColumnPairedConv2d(nn.Conv2d):
-    """
-    ``nn.Conv2d`` (square, numeric padding, no dilation or groups) that runs column-paired where ``pairs_columns``
-    holds, and takes its input gradient column-paired where ``pairs_input_columns`` does.
-    """
+    """``nn.Conv2d`` that runs column-paired where ``pairs_columns`` holds (numeric padding, no dilation or groups)."""
 
     def forward(self, x: Tensor) -> Tensor:
-        square = self.kernel_size[0] == self.kernel_size[1] and self.stride[0] == self.stride[1]
-        plain = isinstance(self.padding, str) or self.padding[0] != self.padding[1] or not square
-        if plain or self.groups != 1 or self.dilation != (1, 1) or self.padding_mode != "zeros":
+        if isinstance(self.padding, str) or self.groups != 1 or self.dilation != (1, 1) or self.padding_mode != "zeros":
             return super().forward(x)
-        (kernel, _), (stride, _), (padding, _) = self.kernel_size, self.stride, self.padding
-        if pairs_columns(x, self.out_channels, kernel, stride, padding):
-            return column_paired_conv2d(x, self.weight, self.bias, self.stride, self.padding)  # type: ignore[arg-type]
-        if x.requires_grad and torch.is_grad_enabled() and pairs_input_columns(x, kernel, stride, padding):
-            return _narrow_input_op(x, self.weight, self.bias, stride, padding)
-        return super().forward(x)
+        (_, kernel), (_, stride), (_, padding) = self.kernel_size, self.stride, self.padding
+        if not pairs_columns(x, self.out_channels, kernel, stride, padding):
+            return super().forward(x)
+        return column_paired_conv2d(x, self.weight, self.bias, self.stride, self.padding)  # type: ignore[arg-type]
 
 
 class DenseConv2d(nn.Conv2d):
@@ -272,8 +164,8 @@ def subpixel_kernel(weight: Tensor, stride: int, channels_last: bool = False) ->
     return phases.permute(order).reshape(out_channels * stride * stride, in_channels, taps, taps)
 
 
-def _output_layout(x: Tensor, weight: Tensor) -> torch.memory_format:
-    """The layout of a convolution's output: channels-last when its input or weight is, as ATen's layers choose."""
+def _subpixel_layout(x: Tensor, weight: Tensor) -> torch.memory_format:
+    """The layout of a sub-pixel convolution's output: channels-last when its input or weight is, as ATen's layer."""
     return torch.channels_last if _is_channels_last(x) or _is_channels_last(weight) else torch.contiguous_format
 
 
@@ -295,7 +187,7 @@ def subpixel_conv_transpose2d(
     # Output pixel o = stride * q + r - padding sums x[q - i] * weight[r + stride * i]: the phase images' rows q
     first, last = padding // stride, (padding + size - 1) // stride
     before, after = taps - 1 - first, last - (height - 1)
-    layout = _output_layout(x, weight)
+    layout = _subpixel_layout(x, weight)
     channels_last = layout == torch.channels_last
     phase_weight = subpixel_kernel(weight, stride, channels_last).contiguous(memory_format=layout)
     phase_bias = None
@@ -321,7 +213,7 @@ def subpixel_conv_transpose2d(
 
 @torch.library.custom_op("sb3_dsslac::subpixel_conv_transpose2d", mutates_args=())
 def _subpixel_op(x: Tensor, weight: Tensor, bias: Tensor | None, stride: int, padding: int, output_padding: int) -> Tensor:
-    """``subpixel_conv_transpose2d`` as one op: (N, C_in, H, H) -> (N, C_out, O, O), dense in ``_output_layout``."""
+    """``subpixel_conv_transpose2d`` as one op: (N, C_in, H, H) -> (N, C_out, O, O), dense in ``_subpixel_layout``."""
     return subpixel_conv_transpose2d(x, weight, bias, stride, padding, output_padding)
 
 
@@ -329,7 +221,7 @@ def _subpixel_op(x: Tensor, weight: Tensor, bias: Tensor | None, stride: int, pa
 def _(x: Tensor, weight: Tensor, bias: Tensor | None, stride: int, padding: int, output_padding: int) -> Tensor:
     size = _transposed_size(x, weight, stride, padding, output_padding)
     shape = (x.shape[0], weight.shape[1], size, size)
-    return torch.empty(shape, dtype=x.dtype, device=x.device, memory_format=_output_layout(x, weight))
+    return torch.empty(shape, dtype=x.dtype, device=x.device, memory_format=_subpixel_layout(x, weight))
 
 
 def _save_for_backward(ctx, inputs: tuple, output: Tensor) -> None:
@@ -347,7 +239,7 @@ def _backward(ctx, grad: Tensor) -> tuple:
     """
     x, weight = ctx.saved_tensors
     stride, padding, output_padding = ctx.geometry
-    grad = grad.contiguous(memory_format=_output_layout(x, weight))
+    grad = grad.contiguous(memory_format=_subpixel_layout(x, weight))
     if pairs_columns(grad, weight.shape[0], weight.shape[-1], stride, padding):
         needs_x, needs_weight, needs_bias = ctx.needs_input_grad[:3]
         grad_x = column_paired_conv2d(grad, weight, None, (stride, stride), (padding, padding)) if needs_x else None

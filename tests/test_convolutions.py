@@ -10,8 +10,8 @@ from sb3_dsslac.convolutions import (
     DenseConv2d,
     DenseConvTranspose2d,
     SubpixelConvTranspose2d,
+    column_paired_conv2d,
     pairs_columns,
-    pairs_input_columns,
 )
 from sb3_dsslac.latent import LatentModel
 
@@ -138,70 +138,12 @@ def test_column_paired_conv2d_compiles_to_the_same_numbers(monkeypatch):
 
     with torch._dynamo.config.patch(trace_autograd_ops=True):
         compiled = torch.compile(gradients, fullgraph=True)(x)
-    plain = torch.autograd.grad(
-        nn.functional.conv2d(x, layer.weight, layer.bias, 2, 2).square().sum(), list(layer.parameters())
+    want = torch.autograd.grad(
+        column_paired_conv2d(x, layer.weight, layer.bias, (2, 2), (2, 2)).square().sum(), [layer.weight]
     )
-    for got, want in zip(compiled, plain, strict=True):
-        torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
-
-
-@pytest.mark.parametrize(
-    "channels, kernel, padding, size",
-    [
-        ((8, 16), 3, 1, 32),  # the encoder's second layer at 64x64
-        ((8, 16), 3, 1, 16),  # at 32x32
-        ((3, 5), 4, 1, 10),
-        ((2, 3), 3, 0, 8),
-        ((2, 12), 2, 0, 8),
-    ],
-)
-def test_column_paired_input_gradient_is_the_convolutions(channels, kernel, padding, size, monkeypatch):
-    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", True)
-    calls = []
-    paired_input_grad = convolutions.column_paired_input_grad
-    monkeypatch.setattr(convolutions, "column_paired_input_grad", lambda *args: calls.append(1) or paired_input_grad(*args))
-    x = torch.empty(1, channels[0], size, size).contiguous(memory_format=torch.channels_last)
-    assert pairs_input_columns(x, kernel, 2, padding) and not pairs_columns(x, channels[1], kernel, 2, padding)
-    layers = [cls(*channels, kernel, stride=2, padding=padding) for cls in (nn.Conv2d, ColumnPairedConv2d)]
-    out = _same_outputs_and_gradients(*layers, (3, channels[0], size, size), torch.channels_last)
-    assert out.is_contiguous(memory_format=torch.channels_last) and calls == [1]
-
-
-def test_only_stride_2_convolutions_of_narrow_channels_last_inputs_pair_their_input_columns(monkeypatch):
-    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", True)
-    x = torch.empty(2, 8, 32, 32).contiguous(memory_format=torch.channels_last)
-    assert pairs_input_columns(x, 3, 2, 1)
-    assert not pairs_input_columns(x, 3, 1, 1)  # stride 1: no column pair maps onto one output column
-    assert not pairs_input_columns(x.contiguous(), 3, 2, 1)
-    assert not pairs_input_columns(torch.empty(2, 16, 32, 32).contiguous(memory_format=torch.channels_last), 3, 2, 1)
-    assert not pairs_input_columns(torch.empty(2, 8, 31, 31).contiguous(memory_format=torch.channels_last), 3, 2, 1)
-
-
-@pytest.mark.parametrize("bias", [False, True])
-def test_narrow_input_op_passes_torch_library_checks(bias: bool, monkeypatch):
-    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", True)
-    layer = ColumnPairedConv2d(8, 16, 3, stride=2, padding=1, bias=bias).to(memory_format=torch.channels_last)
-    x = torch.randn(2, 8, 12, 12).contiguous(memory_format=torch.channels_last).requires_grad_()
-    out = layer(x)
-    assert out.shape == (2, 16, 6, 6) and out.is_contiguous(memory_format=torch.channels_last)
-    torch.library.opcheck(torch.ops.sb3_dsslac.narrow_input_conv2d, (x, layer.weight, layer.bias, 2, 1))
-
-
-def test_column_paired_input_gradient_compiles_to_the_same_numbers(monkeypatch):
-    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", True)
-    layer = ColumnPairedConv2d(8, 16, 3, stride=2, padding=1).to(memory_format=torch.channels_last)
-    x = torch.randn(2, 8, 16, 16).contiguous(memory_format=torch.channels_last).requires_grad_()
-
-    def gradients(x: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        return torch.autograd.grad(layer(x).square().sum(), [x, *layer.parameters()])
-
-    with torch._dynamo.config.patch(trace_autograd_ops=True):
-        compiled = torch.compile(gradients, fullgraph=True)(x)
-    plain = torch.autograd.grad(
-        nn.functional.conv2d(x, layer.weight, layer.bias, 2, 1).square().sum(), [x, *layer.parameters()]
-    )
-    for got, want in zip(compiled, plain, strict=True):
-        torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
+    plain = torch.autograd.grad(nn.functional.conv2d(x, layer.weight, layer.bias, 2, 2).square().sum(), [layer.weight])
+    torch.testing.assert_close(compiled[0], want[0], atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(compiled[0], plain[0], atol=1e-4, rtol=1e-4)
 
 
 def test_subpixel_conv_transpose2d_compiles_to_the_same_numbers():
