@@ -25,7 +25,8 @@ THESIS_LR_DECAY_MILESTONE = 30_000 + 400 * 1000 // 2
 # By 300k simulator steps it keeps the cost under the budget but learns no reward; cpu_pixels32 learns it. On a 2-core
 # Intel Xeon (AVX512) its compiled update runs channels-last at 22.6 updates/s, 1.50x the speed issue's reference
 # (07cfb16) over 20 rounds, and a 30k-simulator-step run costs 1.38-1.40x less CPU; with that CPU held to AVX2, 17.6
-# updates/s, 1.30x (docs/performance.md)
+# updates/s, 1.30x. With the first layer's output columns paired (AVX512), 1.56x in 8 rounds on a slower host of that
+# kind (18.65 against 11.92 updates/s; docs/performance.md)
 CPU_PIXELS: dict[str, Any] = {
     "image_noise": 0.1,
     "latent_learning_rate": 1e-3,
@@ -56,7 +57,8 @@ CPU_PIXELS: dict[str, Any] = {
 # keeps single evaluations under the budget. By 300k simulator steps: reward 6.89, cost 17.2 (3 seeds), in 44 CPU minutes
 # per seed on an AMD EPYC (docs/pixel_learning.md). On a 2-core Intel Xeon (AVX512) a 300k run took 34.1 CPU minutes,
 # beside 39.9 for the code of the speed issue's reference (07cfb16) in the same run (benchmarks/results/speed_300k_intel_xeon);
-# its update has since gained 1.05x there (1.09x held to AVX2) from channels-last convolutions and frames
+# with channels-last convolutions and frames and paired columns, 42.1 against 47.8 on a slower host (1.14x;
+# benchmarks/results/speed_300k_intel_xeon_2)
 CPU_PIXELS32: dict[str, Any] = {**CPU_PIXELS, "learning_starts": 5_000, "gradient_steps": 96, "cost_target": 20.0}
 
 PRESETS: dict[str, dict[str, Any]] = {
