@@ -57,6 +57,12 @@ def _paired_kernel(weight: Tensor, stride: int) -> Tensor:
     return torch.cat([F.pad(weight, (0, stride)), F.pad(weight, (stride, 0))]).contiguous(memory_format=torch.channels_last)
 
 
+def _paired(x: Tensor) -> Tensor:
+    """(N, C, H, W) channels-last -> the same memory as (N, 2 C, H, W / 2): each even column with the odd one after it."""
+    batch, channels, height, width = x.shape
+    return x.permute(0, 2, 3, 1).reshape(batch, height, width // 2, 2 * channels).permute(0, 3, 1, 2)
+
+
 def _unpaired(paired: Tensor, channels: int) -> Tensor:
     """(N, 2 C, H, W / 2) channels-last -> the same memory as (N, C, H, W), channels-last."""
     batch, _, height, half_width = paired.shape
@@ -81,12 +87,14 @@ def column_paired_conv2d(
 
 
 def column_paired_weight_grad(x: Tensor, grad_output: Tensor, weight: Tensor, stride: int, padding: int) -> Tensor:
-    """The gradient of ``column_paired_conv2d(x, weight, None, stride, padding)``'s weight for ``grad_output``."""
-    batch, channels, height, width = grad_output.shape
-    paired_grad = grad_output.permute(0, 2, 3, 1).reshape(batch, height, width // 2, 2 * channels).permute(0, 3, 1, 2)
+    """
+    The gradient of ``column_paired_conv2d(x, weight, None, (stride, stride), (padding, padding))``'s weight for
+    ``grad_output`` (N, C', H', W'), taken as that of the paired kernel and folded back onto the plain one.
+    """
+    channels = grad_output.shape[1]
     paired_weight = _paired_kernel(weight, stride)
     (_, paired, _) = torch.ops.aten.convolution_backward(
-        paired_grad,
+        _paired(grad_output),
         x,
         paired_weight,
         None,
