@@ -95,6 +95,9 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
     :param batch_size: sequences per actor-critic update
     :param latent_batch_size: sequences per latent-model update
     :param sequence_length: transitions per sampled sequence (frames: ``sequence_length + 1``)
+    :param actor_critic_transitions: transitions of each sampled sequence, its last ones, that the actor and critics
+        learn from: 1 (the thesis's, the last) to ``sequence_length`` (all: that many times the samples per update, for
+        the price of small networks on a larger batch)
     :param tau: Polyak factor of the target critics
     :param gamma: discount of the reward
     :param cost_gamma: discount of the cost
@@ -170,6 +173,7 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         batch_size: int = 64,
         latent_batch_size: int = 32,
         sequence_length: int = 10,
+        actor_critic_transitions: int = 1,
         tau: float = 5e-3,
         gamma: float = 0.99,
         cost_gamma: float = 0.995,
@@ -236,6 +240,7 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         self.latent_pretrain_steps = latent_pretrain_steps
         self.latent_batch_size = latent_batch_size
         self.sequence_length = sequence_length
+        self.actor_critic_transitions = actor_critic_transitions
         self.cost_gamma = cost_gamma
         # A copy: the caller's dict is not ours to fill, and may be shared by several models
         self.policy_kwargs = _merge_shared_keywords(
@@ -289,6 +294,10 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
                     "Cannot tell how many agent steps an episode of this env has (it has no time limit): "
                     "pass episode_length=<agent steps per episode> so that cost_limit can be spread over the steps."
                 )
+        if not 1 <= actor_critic_transitions <= sequence_length:
+            raise ValueError(
+                f"actor_critic_transitions must be in [1, sequence_length={sequence_length}], got {actor_critic_transitions}"
+            )
         if not 0.0 < cvar_risk_level <= 1.0:
             raise ValueError(f"cvar_risk_level must be in (0, 1], got {cvar_risk_level}")
         if cost_target is not None and not 0.0 <= cost_target <= cost_limit:
@@ -349,6 +358,7 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
             tau=self.tau,
             batch_size=self.batch_size,
             latent_batch_size=self.latent_batch_size,
+            actor_critic_transitions=self.actor_critic_transitions,
             share_latent_batch=self.share_latent_batch,
             n_quantiles=self.n_quantiles,
             cvar_risk_level=self.cvar_risk_level,

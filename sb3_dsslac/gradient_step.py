@@ -1,6 +1,8 @@
 """One gradient step of DS-SLAC (Algorithm 1) on the device: the latent-model update, the TD targets, the actor-critic
 update and the Polyak update of the target critics, and the device state they read."""
 
+from typing import NamedTuple
+
 import torch as th
 from sb3_contrib.common.utils import quantile_huber_loss
 from torch.nn import functional as F
@@ -11,6 +13,18 @@ from sb3_dsslac.lagrange import sgd_lagrange_step_on_device
 from sb3_dsslac.numerics import NonFiniteGuard, bf16_autocast
 from sb3_dsslac.optim import adam_step, clip_grads
 from sb3_dsslac.policies import LatentPolicy
+
+
+class Transitions(NamedTuple):
+    """N transitions on the latent state, each a (N, ...) tensor: ``z``, ``a``, ``r`` and ``c`` (N, 1), ``terminated``
+    (N, 1, 1.0 where the transition ended its episode by a true termination) and ``z'``."""
+
+    latents: th.Tensor
+    actions: th.Tensor
+    rewards: th.Tensor
+    costs: th.Tensor
+    terminated: th.Tensor
+    next_latents: th.Tensor
 
 
 class GradientStep:
@@ -31,6 +45,8 @@ class GradientStep:
     :param tau: Polyak factor of the target critics
     :param batch_size: sequences per actor-critic update
     :param latent_batch_size: sequences per latent-model update
+    :param actor_critic_transitions: transitions of each sequence, its last ones, that the actor-critic update learns
+        from (1: the last one, as the thesis; ``sequence_length``: all of them, ``batch_size`` times as many samples)
     :param share_latent_batch: one sampled batch and one encoder pass per update (see ``full_step``)
     :param n_quantiles: quantile fractions sampled per update by the IQN critic and the actor
     :param cvar_risk_level: beta in (0, 1]: the actor's fractions are drawn from U(1 - beta, 1)
@@ -55,6 +71,7 @@ class GradientStep:
         tau: float,
         batch_size: int,
         latent_batch_size: int,
+        actor_critic_transitions: int,
         share_latent_batch: bool,
         n_quantiles: int,
         cvar_risk_level: float,
@@ -75,6 +92,7 @@ class GradientStep:
         self.tau = tau
         self.batch_size = batch_size
         self.latent_batch_size = latent_batch_size
+        self.actor_critic_transitions = actor_critic_transitions
         self.share_latent_batch = share_latent_batch
         self.n_quantiles = n_quantiles
         self.cvar_risk_level = cvar_risk_level
@@ -177,49 +195,64 @@ class GradientStep:
         return {"latent_loss": loss.detach(), **parts}, latents
 
     @th.no_grad()
-    def td_targets(
-        self, batch: SequenceBatch, latents: th.Tensor, ent_coef: th.Tensor, target_taus: th.Tensor
-    ) -> tuple[th.Tensor, th.Tensor]:
+    def td_targets(self, transitions: Transitions, ent_coef: th.Tensor, target_taus: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """
-        TD targets of both critics for the last transition of each sequence, ``z = latents[:, -2]`` to
-        ``z' = latents[:, -1]``, with ``a' ~ pi(z')`` from the current actor; terminations stop the bootstrap, time
+        TD targets of both critics, with ``a' ~ pi(z')`` from the current actor; terminations stop the bootstrap, time
         limits (truncations) do not.
+
+        :param transitions: the transitions learned from (N of them)
+        :param ent_coef: the entropy coefficient (scalar or (1,))
+        :param target_taus: the target quantile fractions (N, N')
+        :return: ``r + gamma * (1 - terminated) * (min(Q1', Q2')(z', a') - alpha * log pi(a' | z'))`` (N, 1) and
+            ``c + gamma_c * (1 - terminated) * Z'_tau'(z', a')`` (N, N')
+        """
+        policy = self.policy
+        next_z = transitions.next_latents
+        not_terminated = 1.0 - transitions.terminated
+        next_actions, next_log_prob = policy.actor.action_log_prob(next_z)
+        next_q = policy.critic_target(next_z, next_actions).amin(dim=0) - ent_coef * next_log_prob.unsqueeze(-1)
+        target_q = transitions.rewards + not_terminated * self.gamma * next_q
+        next_quantiles = policy.cost_critic_target(next_z, next_actions, target_taus)
+        target_quantiles = transitions.costs + not_terminated * self.cost_gamma * next_quantiles
+        return target_q, target_quantiles
+
+    def transitions(self, batch: SequenceBatch, latents: th.Tensor) -> Transitions:
+        """
+        The last ``actor_critic_transitions`` transitions of each sequence, flattened: ``z = latents[:, t]`` to
+        ``z' = latents[:, t + 1]`` for the last ``k`` steps ``t`` (N = B * k, sequence-major).
 
         :param batch: the sequences (B, L+1 frames)
         :param latents: their posterior samples (B, L+1, z_dim)
-        :param ent_coef: the entropy coefficient (scalar or (1,))
-        :param target_taus: the target quantile fractions (B, N')
-        :return: ``r + gamma * (1 - terminated) * (min(Q1', Q2')(z', a') - alpha * log pi(a' | z'))`` (B, 1) and
-            ``c + gamma_c * (1 - terminated) * Z'_tau'(z', a')`` (B, N')
         """
-        policy = self.policy
-        next_z = latents[:, -1]
-        not_terminated = 1.0 - batch.terminated[:, -1:]
-        next_actions, next_log_prob = policy.actor.action_log_prob(next_z)
-        next_q = policy.critic_target(next_z, next_actions).amin(dim=0) - ent_coef * next_log_prob.unsqueeze(-1)
-        target_q = batch.rewards[:, -1:] + not_terminated * self.gamma * next_q
-        next_quantiles = policy.cost_critic_target(next_z, next_actions, target_taus)
-        target_quantiles = batch.costs[:, -1:] + not_terminated * self.cost_gamma * next_quantiles
-        return target_q, target_quantiles
+        k = self.actor_critic_transitions
+        z_dim = latents.shape[-1]
+        return Transitions(
+            latents=latents[:, -k - 1 : -1].reshape(-1, z_dim),
+            actions=batch.actions[:, -k:].reshape(-1, batch.actions.shape[-1]),
+            rewards=batch.rewards[:, -k:].reshape(-1, 1),
+            costs=batch.costs[:, -k:].reshape(-1, 1),
+            terminated=batch.terminated[:, -k:].reshape(-1, 1),
+            next_latents=latents[:, -k:].reshape(-1, z_dim),
+        )
 
     def actor_critic_update(self, batch: SequenceBatch, latents: th.Tensor) -> dict[str, th.Tensor]:
         """
-        One update of the reward critic, the cost critic, the actor and the entropy coefficient on the last transition
-        of each sequence, then of the target critics.
+        One update of the reward critic, the cost critic, the actor and the entropy coefficient on the last
+        ``actor_critic_transitions`` transitions of each sequence, then of the target critics.
 
         :param batch: the sequences (B, L+1 frames)
         :param latents: their posterior samples (B, L+1, z_dim), no gradient
         :return: the update's detached losses and cost estimates
         """
         policy = self.policy
-        n = batch.actions.shape[0]
-        z = latents[:, -2]
-        actions = batch.actions[:, -1]
+        transitions = self.transitions(batch, latents)
+        z, actions = transitions.latents, transitions.actions
+        n = z.shape[0]
         ent_coef = th.exp(self.log_ent_coef.detach()) if self.log_ent_coef is not None else self.ent_coef_tensor
         multiplier = F.softplus(self.lagrange_raw)
 
         target_taus = sample_taus(n, self.n_quantiles, self.device)
-        target_q, target_quantiles = self.td_targets(batch, latents, ent_coef, target_taus)  # under no_grad
+        target_q, target_quantiles = self.td_targets(transitions, ent_coef, target_taus)  # under no_grad
 
         q_values = policy.critic(z, actions)  # (2, B, 1)
         critic_loss = (q_values - target_q).pow(2).mean(dim=(1, 2)).sum()  # MSE of each network, summed

@@ -235,8 +235,9 @@ class FakeQuantiles(nn.Module):
         return 100 * z[:, :1] + actions[:, :1] + taus
 
 
-def test_td_targets_on_a_hand_built_batch(monkeypatch) -> None:
-    model = small_model(HazardPointEnv(), gamma=0.9, cost_gamma=0.5)
+@pytest.mark.parametrize("transitions", [1, SMALL["sequence_length"]])
+def test_td_targets_on_a_hand_built_batch(transitions: int, monkeypatch) -> None:
+    model = small_model(HazardPointEnv(), gamma=0.9, cost_gamma=0.5, actor_critic_transitions=transitions)
     policy = model.policy
     monkeypatch.setattr(policy, "critic_target", FakeTwinQ())
     monkeypatch.setattr(policy, "cost_critic_target", FakeQuantiles())
@@ -258,29 +259,46 @@ def test_td_targets_on_a_hand_built_batch(monkeypatch) -> None:
     terminated[2, -2] = 1.0
     batch = SequenceBatch(th.zeros(batch_size, steps + 1, 4), th.zeros(batch_size, steps, 2), rewards, costs, terminated)
     ent_coef = th.tensor([0.2])
-    taus = th.rand(batch_size, 5)
+    n = batch_size * transitions
+    taus = th.rand(n, 5)
 
-    target_q, target_quantiles = model.updates.step.td_targets(batch, latents, ent_coef, taus)
+    step = model.updates.step
+    target_q, target_quantiles = step.td_targets(step.transitions(batch, latents), ent_coef, taus)
 
-    assert target_q.shape == (batch_size, 1) and target_quantiles.shape == (batch_size, 5)
-    next_z0 = latents[:, -1, 0:1]
+    # The last `transitions` transitions of each sequence, sequence-major: z' is frame t + 1 of transition t
+    assert target_q.shape == (n, 1) and target_quantiles.shape == (n, 5)
+    last = slice(steps - transitions, steps)
+    next_z0 = latents[:, last.start + 1 :, 0].reshape(n, 1)
     next_a0 = 0.5 * next_z0
     next_q = th.minimum(10 * next_z0 + next_a0, 10 * next_z0 + 5) - 0.2 * (-next_z0)
-    alive = th.tensor([[1.0], [0.0], [1.0]])
-    th.testing.assert_close(target_q, rewards[:, -1:] + 0.9 * alive * next_q)
-    th.testing.assert_close(target_quantiles, costs[:, -1:] + 0.5 * alive * (100 * next_z0 + next_a0 + taus))
+    alive = (1.0 - terminated[:, last]).reshape(n, 1)
+    th.testing.assert_close(target_q, rewards[:, last].reshape(n, 1) + 0.9 * alive * next_q)
+    th.testing.assert_close(target_quantiles, costs[:, last].reshape(n, 1) + 0.5 * alive * (100 * next_z0 + next_a0 + taus))
     assert not target_q.requires_grad and not target_quantiles.requires_grad
 
 
-def test_the_update_uses_z_at_index_minus_2() -> None:
-    model = small_model(HazardPointEnv())
+@pytest.mark.parametrize("transitions", [1, 3])
+def test_the_update_learns_from_the_last_transitions(transitions: int) -> None:
+    """One transition: z at index -2 (the thesis's); k of them: z at indices -k-1 .. -2 with their actions."""
+    model = small_model(HazardPointEnv(), actor_critic_transitions=transitions)
     model.learn(45)
     seen = []
-    model.policy.critic.register_forward_pre_hook(lambda module, args: seen.append(args[0].detach().clone()))
+    model.policy.critic.register_forward_pre_hook(lambda module, args: seen.append([arg.detach().clone() for arg in args]))
     latents = th.randn(8, SMALL["sequence_length"] + 1, model.policy.latent.z_dim)
     batch = model.replay_buffer.gather(model.replay_buffer.sample_indices(1, 8)[0])
     model.updates.step.actor_critic_update(batch, latents)
-    th.testing.assert_close(seen[0], latents[:, -2])
+    z, actions = seen[0]
+    th.testing.assert_close(z, latents[:, -transitions - 1 : -1].reshape(8 * transitions, -1))
+    th.testing.assert_close(actions, batch.actions[:, -transitions:].reshape(8 * transitions, -1))
+    if transitions == 1:
+        th.testing.assert_close(z, latents[:, -2])
+
+
+def test_actor_critic_transitions_must_fit_the_sequence() -> None:
+    with pytest.raises(ValueError, match="actor_critic_transitions"):
+        small_model(HazardPointEnv(), actor_critic_transitions=SMALL["sequence_length"] + 1)
+    with pytest.raises(ValueError, match="actor_critic_transitions"):
+        small_model(HazardPointEnv(), actor_critic_transitions=0)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -325,7 +343,7 @@ def test_cvar_taus_reach_only_the_actor(monkeypatch) -> None:
         "quantile_huber_loss",
         lambda c, t, cum_prob: loss_taus.append(cum_prob.squeeze(-1)) or original_loss(c, t, cum_prob=cum_prob),
     )
-    monkeypatch.setattr(step, "td_targets", lambda b, z, e, taus: target_taus.append(taus) or original_targets(b, z, e, taus))
+    monkeypatch.setattr(step, "td_targets", lambda t, e, taus: target_taus.append(taus) or original_targets(t, e, taus))
     model.policy.cost_critic.register_forward_pre_hook(lambda module, args: critic_taus.append(args[2].detach()))
     model.train(gradient_steps=2, batch_size=8)
 
