@@ -245,11 +245,11 @@ def test_belief_probe_cost_head_auc_ranks_costly_transitions_against_free_ones(m
 
 def test_belief_probe_splits_the_reward_by_the_goal_in_the_frame_acted_on(monkeypatch) -> None:
     monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
-    from belief_probe import MIN_PIXELS, goal_in_view, reward_by_goal_view
+    from belief_probe import goal_in_view, reward_by_goal_view
 
     # Two episodes of 2 steps (3 frames each); frames 0 and 1 of the first show the goal, no frame of the second does
     frames = [np.zeros((3, 8, 8, 3), dtype=np.uint8) for _ in range(2)]
-    frames[0][:2, :, : MIN_PIXELS // 8 + 1, 1] = 255
+    frames[0][:2, :, :2, 1] = 255
     frames[1][:, :, :, 1] = 255
     frames[1][:, :, :, 0] = 255  # yellow, not green
     rewards = [np.array([1.0, 0.5]), np.array([0.25, -0.25])]

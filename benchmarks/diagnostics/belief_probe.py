@@ -2,7 +2,8 @@
 Does a pixel agent's belief hold the goal and the hazards? Linear probes on a finished ``train`` run: windows drawn
 from the run's last replay-buffer checkpoint, each filtered by the run's latent model; a ridge regression from the belief
 z of the window's last frame (and, for comparison, from that frame's encoder feature) to what the frame shows: whether
-the goal (green pixels) is in view, how many goal pixels there are, the goal's mean column where it is in view, and the
+the goal (green pixels) is in view (``benchmarks/goal_view.py``: its pixels cover at least 10/4096 of the frame, 2.5
+pixels at 32x32), how many goal pixels there are, the goal's mean column where it is in view, and the
 same for the hazards (blue). R^2 on a held-out third of the windows: 1 is a linear readout, 0 is no better than the mean.
 It also scores the latent model's own cost decoder on the windows' last transitions: its mean probability of cost on
 the transitions that cost and on those that did not, and the ROC AUC between them (0.5: it cannot tell them apart),
@@ -27,23 +28,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 import torch as th
+from goal_view import goal_in_view, in_view, object_masks
 from machine import cpu_model
 
 from sb3_dsslac import DSSLAC
 from sb3_dsslac.beliefs import episode_beliefs
 from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint, load_config
 
-MIN_PIXELS = 10  # an object is "in view" with at least this many of its pixels
 GOAL_REACHED = 0.5  # a step's reward above this holds the goal bonus (1 in every Goal task; distance terms are ~0.1)
-
-
-def object_masks(frames: np.ndarray) -> dict[str, np.ndarray]:
-    """(T, H, W, 3) uint8 frames -> boolean (T, H, W) masks of the hazard (blue) and goal (green) pixels."""
-    red, green, blue = np.moveaxis(frames.astype(np.float32) / 255.0, -1, 0)
-    return {
-        "hazard": (blue > red + 0.2) & (blue > green + 0.2),
-        "goal": (green > red + 0.15) & (green > blue + 0.15),
-    }
 
 
 def ridge_r2(inputs: np.ndarray, targets: np.ndarray, l2: float = 1e-2) -> float:
@@ -68,9 +60,9 @@ def frame_targets(frames: np.ndarray) -> dict[str, np.ndarray]:
     columns = np.arange(frames.shape[2])
     for name, mask in object_masks(frames).items():
         count = mask.sum(axis=(1, 2))
-        in_view = count >= MIN_PIXELS
-        column = np.where(in_view, (mask.sum(axis=1) * columns).sum(axis=1) / np.maximum(count, 1), np.nan)
-        targets[f"{name} in view"], targets[f"{name} pixels"], targets[f"{name} column"] = in_view * 1.0, count * 1.0, column
+        shown = in_view(mask)
+        column = np.where(shown, (mask.sum(axis=1) * columns).sum(axis=1) / np.maximum(count, 1), np.nan)
+        targets[f"{name} in view"], targets[f"{name} pixels"], targets[f"{name} column"] = shown * 1.0, count * 1.0, column
     return targets
 
 
@@ -102,11 +94,6 @@ def cost_head_scores(probabilities: np.ndarray, costs: np.ndarray) -> dict[str, 
         "p(cost) on free": float(probabilities[~costly].mean()) if (~costly).any() else None,
         "ROC AUC": roc_auc(probabilities, costly),
     }
-
-
-def goal_in_view(frames: np.ndarray) -> np.ndarray:
-    """(T, H, W, 3) uint8 frames -> (T,) bool: the goal is in view (at least ``MIN_PIXELS`` of its pixels)."""
-    return frame_targets(frames)["goal in view"] > 0
 
 
 def reward_by_goal_view(in_view: list[np.ndarray], rewards: list[np.ndarray]) -> dict[str, float | None]:

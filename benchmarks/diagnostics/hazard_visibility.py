@@ -2,11 +2,11 @@
 Could a pixel agent foresee its hazard costs? For each image size, episodes of a random policy on the agent's own env
 (``make_env``, pixels, action repeat included), the same env seeds and actions at every size, so the same trajectories;
 at each agent step that costs through a hazard, whether a hazard was in view (hazard-blue pixels covering at least
-``MIN_SHARE`` of the frame) in that step's frame or any of the W - 1 frames before it, for each window length W: anywhere
-in the frame, and in its bottom quarter (the floor just ahead of the robot). The same shares on the steps that cost
-nothing show how often such a sighting is harmless. No model is involved: it bounds what any belief built from the last
-W frames could know about the hazard the robot stands on, as a detector "a hazard was seen" with a hit rate (costly
-steps) and a false-alarm rate (free steps).
+``goal_view.IN_VIEW_SHARE`` of the frame, 10/4096: 2.5 pixels at 32x32) in that step's frame or any of the W - 1 frames
+before it, for each window length W: anywhere in the frame, and in its bottom quarter (the floor just ahead of the
+robot). The same shares on the steps that cost nothing show how often such a sighting is harmless. No model is
+involved: it bounds what any belief built from the last W frames could know about the hazard the robot stands on, as a
+detector "a hazard was seen" with a hit rate (costly steps) and a false-alarm rate (free steps).
 
     python benchmarks/diagnostics/hazard_visibility.py                               # PointGoal1, 32x32 and 64x64, 20 episodes
     python benchmarks/diagnostics/hazard_visibility.py --sizes 32 48 64 --windows 1 4 10 20 --episodes 40
@@ -24,23 +24,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import gymnasium as gym
 import numpy as np
-from belief_probe import MIN_PIXELS, object_masks
+from goal_view import hazard_mask, in_view
 from machine import cpu_model
 
 from sb3_dsslac.envs import make_env
 
-MIN_SHARE = MIN_PIXELS / 64**2  # belief_probe's threshold on a 64x64 frame: the same area at every size
 REGIONS = {"anywhere": 1.0, "bottom quarter": 0.25}  # share of the frame's rows, counted from the bottom
 
 
 def hazard_in_view(frames: np.ndarray, rows: float = 1.0) -> np.ndarray:
     """
     (T, H, W, 3) uint8 frames -> (T,) True where the hazard-blue pixels of the bottom ``rows`` share of the rows cover at
-    least ``MIN_SHARE`` of the whole frame.
+    least ``goal_view.IN_VIEW_SHARE`` of the whole frame.
     """
-    mask = object_masks(frames)["hazard"]
+    mask = hazard_mask(frames)
     height = mask.shape[1]
-    return mask[:, height - round(height * rows) :].sum(axis=(1, 2)) >= MIN_SHARE * mask[0].size
+    mask[:, : height - round(height * rows)] = False
+    return in_view(mask)
 
 
 def seen_within(in_view: np.ndarray, window: int) -> np.ndarray:

@@ -1,8 +1,8 @@
 """
 How large do the goal and the hazards look in a task's first-person frames? Random-policy episodes on each task at
 each frame size (the same env seeds and actions everywhere): the share of frames that show any pixel of the object,
-the share that show it over at least ``belief_probe``'s in-view area (``MIN_PIXELS`` pixels of a 64x64 frame, the same
-area at every size), and the median size of the object in the frames that show it, in pixels and in per mille of the
+the share that show it in view (``goal_view.IN_VIEW_SHARE`` of the frame, 10/4096: the same area at every size, 2.5
+pixels at 32x32), and the median size of the object in the frames that show it, in pixels and in per mille of the
 frame. No model is involved: it says how much of an image likelihood an object can weigh in, task against task.
 
     python benchmarks/diagnostics/object_sizes.py                                   # PointGoal1 and PointGoal2, 32x32
@@ -17,8 +17,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
-from belief_probe import object_masks
-from hazard_visibility import MIN_SHARE, random_episode
+from goal_view import in_view, object_masks
+from hazard_visibility import random_episode
 from machine import cpu_model
 
 from sb3_dsslac.envs import make_env
@@ -38,7 +38,7 @@ def size_rows(env_id: str, size: int, episodes: int, action_repeat: int) -> list
         median = float(np.median(shown)) if len(shown) else 0.0
         rows.append(
             f"| {env_id.split('/')[-1]} | {size}x{size} | {name} | {len(frames):,} | {np.mean(pixels > 0):.3f} | "
-            f"{np.mean(pixels >= MIN_SHARE * size * size):.3f} | {median:.1f} | {1000 * median / (size * size):.1f} |"
+            f"{np.mean(in_view(mask)):.3f} | {median:.1f} | {1000 * median / (size * size):.1f} |"
         )
     return rows
 
@@ -54,7 +54,7 @@ def main() -> None:
         parser.error("--sizes, --episodes and --action-repeat must be positive")
     print(f"action repeat {args.action_repeat}, random policy, {args.episodes} episodes per task and size; {cpu_model()}\n")
     print(
-        "| task | frame | object | frames | shown (any pixel) | in view (belief_probe's area) | median pixels when shown "
+        "| task | frame | object | frames | shown (any pixel) | in view (goal_view's share) | median pixels when shown "
         "| the same, per mille of the frame |\n|---|---|---|---:|---:|---:|---:|---:|"
     )
     for env_id in args.envs:

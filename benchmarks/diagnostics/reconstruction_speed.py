@@ -25,7 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 import torch as th
-from belief_probe import MIN_PIXELS, object_masks, probe
+from belief_probe import probe
+from goal_view import goal_in_view, object_masks
 from machine import cpu_model
 
 from sb3_dsslac import DSSLAC
@@ -61,7 +62,7 @@ def held_out_windows(env_id: str, env_kwargs: dict, hyperparams: dict, steps: in
 def reward_r2(model: DSSLAC, windows: SequenceBatch, chunk: int = 256) -> dict[str, float | None]:
     """
     R^2 of the reward decoder's means on ``windows`` (posterior latents of each window; all its transitions): over all
-    transitions, and over those whose two frames both show the goal (``MIN_PIXELS`` green pixels), where the frames hold
+    transitions, and over those whose two frames both show the goal (``goal_view``'s in-view rule), where the frames hold
     what the reward depends on (None: fewer than two such transitions).
     """
     latent, predictions = model.policy.latent, []
@@ -73,8 +74,8 @@ def reward_r2(model: DSSLAC, windows: SequenceBatch, chunk: int = 256) -> dict[s
             mean, _ = latent.reward_decoder(th.cat([z[:, :-1], actions, z[:, 1:]], dim=-1))
             predictions.append(mean.squeeze(-1))
     frames = windows.observations.permute(0, 1, 3, 4, 2).numpy()  # (B, L+1, H, W, C)
-    goal_pixels = object_masks(frames.reshape(-1, *frames.shape[2:]))["goal"].sum(axis=(1, 2)).reshape(frames.shape[:2])
-    in_view = th.as_tensor((goal_pixels[:, :-1] >= MIN_PIXELS) & (goal_pixels[:, 1:] >= MIN_PIXELS))
+    shown = goal_in_view(frames)  # (B, L+1)
+    in_view = th.as_tensor(shown[:, :-1] & shown[:, 1:])
     errors, rewards = (th.cat(predictions) - windows.rewards).pow(2), windows.rewards
 
     def r2(mask: th.Tensor) -> float | None:
