@@ -21,6 +21,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
+import torch as th
 from ceiling import ACTION_REPEAT, Episode, controller_for, run_episode
 from goal_view import min_pixels
 from machine import cpu_model
@@ -131,11 +132,9 @@ def main() -> None:
         parser.error("--episodes must be positive")
     agents: dict[str, Callable[[np.ndarray], np.ndarray]] = {}
     if args.model is not None:
-        import torch as th
-
         th.set_num_threads(1)
         model, env_id, env_kwargs = load_agent(args.model)
-        agents[f"trained ({args.model})"] = ModelAgent(model, args.deterministic)
+        agents[f"trained ({'/'.join(args.model.parts[-2:])})"] = ModelAgent(model, args.deterministic)
     else:
         env_id, env_kwargs = args.env, {"width": args.size, "height": args.size, "action_repeat": ACTION_REPEAT}
     env = make_env(env_id, "pixels", env_kwargs=env_kwargs)
