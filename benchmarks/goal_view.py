@@ -12,9 +12,10 @@ goal's pixels on the Point tasks at 32x32 and 61% on CarGoal1. Hazards are blue 
 or more: the goal drawn over a hazard is blue-green), vases cyan (green = blue, red at most 16).
 
 The in-view share, 10/4096 of the frame (10 pixels at 64x64, 2.5 at 32x32), is the same solid angle at every frame size:
-the translucent 0.3 m goal covers it in the Point's view (fovy 90) at up to about 5 m, so inside the 3x3 m (Goal1) and
-4x4 m (Goal2) placement regions it counts the goal wherever it is in front of the camera and not cut by the frame's edge
-or a vase, and a one- or two-pixel sliver at 32x32 does not count. ``goal_in_fov`` says how often that agrees with the
+straight ahead of the Point (fovy 90) the translucent 0.3 m goal covers it out to about 5 m at 32x32 (4 pixels at 5 m,
+2 at 6 m) and 4-5 m at 64x64 (16 pixels at 4 m, 8 at 5 m), so inside the 3x3 m (Goal1) and 4x4 m (Goal2) placement
+regions it counts the goal wherever it is in front of the camera and not cut by the frame's edge or a vase, and a one-
+or two-pixel sliver at 32x32 does not count. ``goal_in_fov`` says how often that agrees with the
 geometry (``benchmarks/results/ceiling.md``).
 """
 
