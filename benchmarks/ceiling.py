@@ -6,9 +6,9 @@ bearing of its green pixels, forward speed falling with the bearing. ``avoid``: 
 pixel of its columns; the robot heads along the visible direction nearest the goal whose straight path stays
 ``clearance`` m from them for ``stop_distance`` m (with none, the one with the longest free path), its speed falling
 with that free path too (hazard points nearer than ``ignore_within`` m are not looked at: it cannot steer around them
-any more, and they would keep it in a hazard it stands in); it backs away from a vase seen within ``back_off`` m. The
-camera's pose on the robot is read from the simulator once at reset (its calibration); each action is computed from the
-frame alone.
+any more, and they would keep it in a hazard it stands in). ``careful``: ``avoid`` that also backs away from a vase seen
+within ``back_off`` m. The camera's pose on the robot is read from the simulator once at reset (its calibration); each
+action is computed from the frame alone.
 
 Per task and frame size, N seeded episodes (reset seeds 0..N-1): reward mean ± sample std, cost mean, the share of the
 steps whose frame shows the goal (``goal_view.IN_VIEW_SHARE`` of the frame) and the share with the goal's centre inside
@@ -29,7 +29,8 @@ m). Kept: ``max_speed`` 0.6, ``stop_distance`` 0.8 m, ``slow_bearing`` 90 degree
 (4 episodes, seeds 100-103) that gave 12.8 / 107.5, 89 of it vases sliding after a touch (each touch, mostly slow, near a
 vase hidden under the Point's own nose, costs about 25 simulator steps): a vase clearance of 0.2, 0.25, 0.3 m: 12.0 / 74.0,
 8.7 / 72.8, 6.7 / 117; backing away from a vase seen within 0.25, 0.3 or 0.35 m (clearance 0.2): 6.2 / 30.3, 3.1 / 11.3,
-2.4 / 11.3, with no vase cost from 0.3 m on. Kept: 0.2 m and 0.3 m.
+2.4 / 11.3, with no vase cost from 0.3 m on. Kept: 0.2 m for ``avoid`` and ``careful``, backing away at 0.3 m for
+``careful`` only (on the Goal1 tasks it lost reward, see ``benchmarks/results/ceiling.md``).
 """
 
 import argparse
@@ -128,10 +129,12 @@ class Gains:
 
 
 CONTROLLERS = {
-    "seek": Gains(),  # the issue's script: full speed ahead, none at 45 degrees of bearing
-    # Tuned on PointGoal1 and PointGoal2 at 32x32 (module docstring): the Point coasts about 0.6 m from full speed, so it
-    # goes slower; a vase it touches slides on and costs for about 25 simulator steps, so it backs away from one at its nose
-    "avoid": Gains(slow_bearing=np.pi / 2, max_speed=0.6, vase_clearance=0.2, back_off=0.3),
+    "seek": Gains(),  # the issue's script: full speed ahead, none at 45 degrees of bearing; hazards and vases ignored
+    # Tuned on PointGoal1 at 32x32 (module docstring): the Point coasts about 0.6 m from full speed, so it goes slower
+    "avoid": Gains(slow_bearing=np.pi / 2, max_speed=0.6),
+    # For PointGoal2's ten vases: a touched vase slides on and costs for about 25 simulator steps, so this one backs away
+    # from a vase at its nose (on the Goal1 tasks it can then dither by a vase beside the goal)
+    "careful": Gains(slow_bearing=np.pi / 2, max_speed=0.6, back_off=0.3),
 }
 
 
@@ -257,18 +260,21 @@ def make_ceiling_env(task: str, size: int) -> gym.Env:
     return gym.make(f"SafetyGym/{task}-v0", width=size, height=size, action_repeat=ACTION_REPEAT)
 
 
-def controller_for(env: gym.Env, avoid: bool, gains: Gains | None = None) -> PixelController:
-    """A controller for ``env``'s robot at its frame size (the env must have been reset); ``CONTROLLERS``' gains by default."""
-    gains = gains or CONTROLLERS["avoid" if avoid else "seek"]
-    return PixelController(env.unwrapped.robot_spec.name, CameraGeometry.of(env), avoid, gains)
+def controller_for(env: gym.Env, name: str = "seek", gains: Gains | None = None) -> PixelController:
+    """
+    The controller ``name`` of ``CONTROLLERS`` (its gains unless ``gains`` are given) for ``env``'s robot at its frame
+    size; the env must have been reset.
+    """
+    avoid = name != "seek"
+    return PixelController(env.unwrapped.robot_spec.name, CameraGeometry.of(env), avoid, gains or CONTROLLERS[name])
 
 
-def evaluate(task: str, size: int, avoid: bool, episodes: int, gains: Gains, first_seed: int = 0) -> list[Episode]:
-    """``episodes`` episodes of the controller on ``task`` at ``size`` x ``size`` (reset seeds ``first_seed``, +1 each)."""
+def evaluate(task: str, size: int, name: str, episodes: int, gains: Gains, first_seed: int = 0) -> list[Episode]:
+    """``episodes`` episodes of controller ``name`` on ``task`` at ``size`` x ``size`` (reset seeds from ``first_seed``)."""
     env = make_ceiling_env(task, size)
     try:
         env.reset(seed=first_seed)
-        controller = controller_for(env, avoid, gains)
+        controller = controller_for(env, name, gains)
         return [run_episode(env, controller, seed) for seed in range(first_seed, first_seed + episodes)]
     finally:
         env.close()
@@ -299,7 +305,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tasks", nargs="+", default=["PointGoal1", "PointGoal2", "CarGoal1"])
     parser.add_argument("--sizes", type=int, nargs="+", default=[32, 64], help="frame widths and heights in pixels")
-    parser.add_argument("--controllers", nargs="+", choices=["seek", "avoid"], default=["seek", "avoid"])
+    parser.add_argument("--controllers", nargs="+", choices=list(CONTROLLERS), default=list(CONTROLLERS))
     parser.add_argument("--episodes", type=int, default=10, help="episodes per task, size and controller")
     parser.add_argument("--first-seed", type=int, default=0, help="reset seed of the first episode (+1 each)")
     for name in Gains.__dataclass_fields__:
@@ -319,7 +325,7 @@ def main() -> None:
     for task in args.tasks:
         for size in args.sizes:
             for name in args.controllers:
-                episodes = evaluate(task, size, name == "avoid", args.episodes, gains[name], args.first_seed)
+                episodes = evaluate(task, size, name, args.episodes, gains[name], args.first_seed)
                 rows.append(table_row(task, size, name, episodes))
                 print(rows[-1], flush=True)
     if args.out:

@@ -145,7 +145,7 @@ def test_the_script_earns_more_than_a_random_policy(point_env) -> None:
             return observation, reward, terminated, truncated or self.steps == 100, info
 
     point_env.reset(seed=0)
-    script = controller_for(point_env, avoid=False)
+    script = controller_for(point_env, "seek")
     rng = np.random.default_rng(0)
     scripted = run_episode(Truncated(point_env), script, seed=1)
     random = run_episode(Truncated(point_env), lambda frame: rng.uniform(-1, 1, 2).astype(np.float32), seed=1)

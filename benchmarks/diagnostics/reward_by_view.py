@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 import torch as th
-from ceiling import ACTION_REPEAT, Episode, controller_for, run_episode
+from ceiling import ACTION_REPEAT, CONTROLLERS, Episode, controller_for, run_episode
 from goal_view import min_pixels
 from machine import cpu_model
 
@@ -141,8 +141,7 @@ def main() -> None:
     seeds = range(args.episode_seed, args.episode_seed + args.episodes)
     try:
         env.reset(seed=seeds[0])
-        agents["script, hazards ignored"] = controller_for(env, avoid=False)
-        agents["script, hazards avoided"] = controller_for(env, avoid=True)
+        agents.update({f"script ({name})": controller_for(env, name) for name in CONTROLLERS})
         size = env.observation_space.shape[:2]
         print(f"{env_id} {env_kwargs}, {args.episodes} episodes (reset seeds from {args.episode_seed}); {cpu_model()}\n")
         print(TABLE_HEADER)
