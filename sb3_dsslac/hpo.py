@@ -9,6 +9,7 @@ new storage: the ones that lose the race to create its schema or the study wait 
 import importlib.util
 import random
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
@@ -18,9 +19,9 @@ import numpy as np
 import optuna
 import torch as th
 from optuna.pruners import MedianPruner
-from optuna.exceptions import DuplicatedStudyError, StorageInternalError
+from optuna.exceptions import DuplicatedStudyError, ExperimentalWarning, StorageInternalError
 from optuna.samplers import TPESampler
-from optuna.storages import JournalStorage, RDBStorage, RetryFailedTrialCallback, fail_stale_trials
+from optuna.storages import JournalStorage, RDBStorage, RetryHeartbeatStaleTrialCallback, fail_stale_trials
 from optuna.storages.journal import JournalFileBackend
 from optuna.trial import TrialState
 from sqlalchemy.engine import make_url
@@ -264,16 +265,20 @@ def make_storage(
         return None
     if storage.endswith((".log", ".journal")):
         return retry_storage_race(lambda: JournalStorage(JournalFileBackend(storage)), storage)
-    # Opening a new database creates its schema: several workers starting together race for it
-    return retry_storage_race(
-        lambda: RDBStorage(
-            storage_url(storage),
-            heartbeat_interval=heartbeat_interval,
-            grace_period=grace_period,
-            heartbeat_stale_trial_callback=RetryFailedTrialCallback(max_retry=max_retry),
-        ),
-        storage,
-    )
+    # Heartbeats and their retry callback are experimental in Optuna: chosen, so not warned about on every tune
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ExperimentalWarning)
+        retry = RetryHeartbeatStaleTrialCallback(max_retry=max_retry)
+        # Opening a new database creates its schema: several workers starting together race for it
+        return retry_storage_race(
+            lambda: RDBStorage(
+                storage_url(storage),
+                heartbeat_interval=heartbeat_interval,
+                grace_period=grace_period,
+                heartbeat_stale_trial_callback=retry,
+            ),
+            storage,
+        )
 
 
 def _finish_study(study: optuna.Study, objective: Any, total_trials: int, poll_seconds: float) -> None:
@@ -282,7 +287,9 @@ def _finish_study(study: optuna.Study, objective: Any, total_trials: int, poll_s
     running trials as on their way; while those cover the rest, wait and look for dead workers' trials to retry.
     """
     while True:
-        fail_stale_trials(study)  # a no-op without heartbeats
+        with warnings.catch_warnings():  # experimental in Optuna, as the heartbeats (see make_storage)
+            warnings.simplefilter("ignore", ExperimentalWarning)
+            fail_stale_trials(study)  # a no-op without heartbeats
         states = [trial.state for trial in study.get_trials(deepcopy=False)]
         finished = states.count(TrialState.COMPLETE) + states.count(TrialState.PRUNED)
         if finished >= total_trials:

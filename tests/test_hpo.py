@@ -7,13 +7,14 @@ import subprocess
 import sys
 import time
 import uuid
+import warnings
 from pathlib import Path
 
 import numpy as np
 import optuna
 import pytest
 import torch as th
-from optuna.storages import JournalStorage, RDBStorage, RetryFailedTrialCallback
+from optuna.storages import JournalStorage, RDBStorage, RetryHeartbeatStaleTrialCallback
 from optuna.trial import TrialState
 
 from sb3_dsslac import DSSLAC
@@ -93,7 +94,15 @@ def test_make_storage(tmp_path: Path) -> None:
     assert isinstance(make_storage(str(tmp_path / "study.log")), JournalStorage)
     sqlite = make_storage(f"sqlite:///{tmp_path / 'study.db'}", heartbeat_interval=5)
     assert isinstance(sqlite, RDBStorage) and (sqlite.heartbeat_interval, sqlite.grace_period) == (5, None)
-    assert isinstance(sqlite.get_heartbeat_stale_trial_callback(), RetryFailedTrialCallback)
+    assert isinstance(sqlite.get_heartbeat_stale_trial_callback(), RetryHeartbeatStaleTrialCallback)
+
+
+def test_an_rdb_storage_warns_of_nothing(tmp_path: Path) -> None:
+    # Optuna 4.9 deprecated RetryFailedTrialCallback (a FutureWarning on every SQLite tune); heartbeats are experimental
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        make_storage(f"sqlite:///{tmp_path / 'study.db'}", heartbeat_interval=5)
+    assert [str(warning.message) for warning in caught] == []
 
 
 def test_a_plain_postgresql_url_gets_an_installed_driver() -> None:
@@ -175,7 +184,7 @@ def test_a_killed_worker_s_trial_is_retried_on_postgresql() -> None:
     assert doomed.returncode == -signal.SIGKILL
     assert killed.state == TrialState.FAIL and 1 <= len(killed.intermediate_values) < 4
     assert [trial.state for trial in rest] == [TrialState.COMPLETE, TrialState.COMPLETE]
-    retries = [trial for trial in rest if RetryFailedTrialCallback.retried_trial_number(trial) == killed.number]
+    retries = [trial for trial in rest if RetryHeartbeatStaleTrialCallback.retried_trial_number(trial) == killed.number]
     assert len(retries) == 1 and retries[0].params == killed.params and len(retries[0].intermediate_values) == 4
 
 
