@@ -1,6 +1,9 @@
 """
-The thesis's protocol from the command line: ``python -m sb3_dsslac train | plot | evaluate | beliefs | tune``. This
-module only parses arguments and dispatches to ``runs``, ``rollouts``, ``plotting``, ``beliefs`` and ``hpo``.
+The thesis's protocol from the command line: ``python -m sb3_dsslac train | plot | evaluate | beliefs | tune``.
+
+This module parses arguments, has ``validation`` check them before any env, model or run folder is made (bad input
+ends with one ``error:`` line and exit status 2), and dispatches to ``runs``, ``rollouts``, ``plotting``, ``beliefs``
+and ``hpo``.
 
 Units: ``--sim-steps`` and every ``*-every`` are simulator steps (the thesis's "environment steps"); DSSLAC counts
 agent steps, ``action_repeat`` simulator steps each (2 on the Safety-Gym tasks).
@@ -9,12 +12,25 @@ agent steps, ``action_repeat`` simulator steps each (2 on the Safety-Gym tasks).
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from sb3_dsslac.dsslac import DSSLAC
-from sb3_dsslac.presets import PRESET_ENV_KWARGS, PRESETS
+from sb3_dsslac.env_info import action_repeat_of
+from sb3_dsslac.presets import PRESET_ENV_KWARGS, PRESETS, preset_env_kwargs, preset_hyperparams
 from sb3_dsslac.rollouts import evaluate, format_episodes
-from sb3_dsslac.runs import TrainConfig, find_run_config, parse_hyperparams, resume, train
+from sb3_dsslac.runs import CONFIG_FILE, TrainConfig, find_run_config, parse_hyperparams, resume, train
+from sb3_dsslac.validation import (
+    InputError,
+    check_algorithm,
+    check_device,
+    check_env_id,
+    check_env_kwargs,
+    check_model_file,
+    non_negative_int,
+    positive_int,
+    probe_env,
+    seed,
+)
 
 # DSSLAC keywords that get their own flag (``--learning-rate``); any other goes through ``--hyperparams key=value``
 HYPERPARAM_FLAGS: dict[str, type] = {
@@ -39,25 +55,37 @@ HYPERPARAM_FLAGS: dict[str, type] = {
 }
 
 
-def _flag_hyperparams(args: argparse.Namespace) -> dict[str, Any]:
-    hyperparams = {name: getattr(args, name) for name in HYPERPARAM_FLAGS if getattr(args, name) is not None}
-    return {**hyperparams, **parse_hyperparams(args.hyperparams)}
+# One line per preset of ``presets.PRESETS`` for ``--help``; the help lists every preset, these or not
+PRESET_SUMMARIES: dict[str, str] = {
+    "thesis": "Table 5.2, the thesis's hyperparameters (a GPU's work: about 0.3 updates/s on a 2-core CPU)",
+    "thesis_fast": "thesis with one shared batch per update and bfloat16 where the device computes it natively",
+    "cpu": "small networks, a short warm-up and few updates: a pixel run in minutes on a CPU, learns little",
+    "cpu_learning": "the CPU learning benchmark's, on state vectors: learns PointGoal1 in about 30 minutes",
+    "cpu_pixels": "the pixel learning benchmark's: 64x64 frames, a quarter of the thesis's convolution widths",
+    "cpu_pixels32": "cpu_pixels on 32x32 frames at action repeat 4, the multiplier aiming at cost 20",
+    "cpu_pixels32_bounded": "cpu_pixels32 with bounded latents (every std in [0.1, 2], every |mean| <= 10)",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """``ArgumentParser`` whose errors are one line (``error: ...``, exit status 2) pointing to ``--help``."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"error: {message} (see {self.prog} --help)\n")
+
+
+def _preset_help() -> str:
+    """Every preset of ``PRESETS`` with its summary and the env keywords it sets."""
+    lines = []
+    for name in PRESETS:
+        env_kwargs = " ".join(f"{key}={value}" for key, value in PRESET_ENV_KWARGS.get(name, {}).items())
+        sets = f" ({name} sets {env_kwargs}; --env-kwargs replaces them)" if env_kwargs else ""
+        lines.append(f"{name}: {PRESET_SUMMARIES.get(name, 'see sb3_dsslac/presets.py')}{sets}")
+    return "; ".join(lines)
 
 
 def _add_model_flags(parser: argparse.ArgumentParser, threads_help: str) -> None:
-    preset_envs = "; ".join(
-        f"{name} sets {' '.join(f'{key}={value}' for key, value in env_kwargs.items())}"
-        for name, env_kwargs in PRESET_ENV_KWARGS.items()
-    )
-    parser.add_argument(
-        "--preset",
-        choices=sorted(PRESETS),
-        default="thesis",
-        help="thesis: Table 5.2; thesis_fast: the same with share_latent_batch and bf16; cpu: small and quick; "
-        "cpu_learning: the CPU learning benchmark's (state); cpu_pixels: the pixel learning benchmark's (64x64); "
-        "cpu_pixels32: the same on 32x32 frames at action repeat 4, the multiplier aiming at cost 20. "
-        "Env keywords of the presets (--env-kwargs replaces them): " + (preset_envs or "none"),
-    )
+    parser.add_argument("--preset", choices=list(PRESETS), default="thesis", help=_preset_help())
     parser.add_argument("--obs-type", choices=["pixels", "state"], help="observation type (default: the env's)")
     parser.add_argument(
         "--env-kwargs",
@@ -65,8 +93,8 @@ def _add_model_flags(parser: argparse.ArgumentParser, threads_help: str) -> None
         metavar="KEY=VALUE",
         help="keywords of the env as YAML, on top of the preset's: width=32 height=32 for 32x32 frames",
     )
-    parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
-    parser.add_argument("--threads", type=int, help=threads_help)
+    parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (one this machine has)")
+    parser.add_argument("--threads", type=positive_int, help=threads_help)
     group = parser.add_argument_group("hyperparameters (on top of the preset; agent steps)")
     for name, kind in HYPERPARAM_FLAGS.items():
         group.add_argument(f"--{name.replace('_', '-')}", dest=name, type=kind, metavar=kind.__name__.upper())
@@ -76,26 +104,34 @@ def _add_model_flags(parser: argparse.ArgumentParser, threads_help: str) -> None
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m sb3_dsslac", description=__doc__.strip().splitlines()[0])
+    parser = _Parser(
+        prog="python -m sb3_dsslac",
+        description="DS-SLAC from the command line: train with the thesis's protocol, resume, plot learning curves, "
+        "evaluate a model, show a pixel agent's beliefs, tune with Optuna (docs/cli.md).",
+    )
     commands = parser.add_subparsers(dest="command", required=True)
 
     train_parser = commands.add_parser("train", help="train with the thesis's evaluation protocol")
     train_parser.add_argument("--env", help="env id, e.g. SafetyGym/PointGoal1-v0")
-    train_parser.add_argument("--sim-steps", type=int, help="simulator steps of training (default 1000000)")
-    train_parser.add_argument("--seed", type=int, default=0)
+    train_parser.add_argument(
+        "--sim-steps", type=positive_int, help=f"simulator steps of training (default {TrainConfig.sim_steps})"
+    )
+    train_parser.add_argument("--seed", type=seed, default=0)
     train_parser.add_argument("--out", help="run folder (default runs/<env>_<seed>_<timestamp>)")
     train_parser.add_argument("--resume", metavar="RUN_DIR", help="continue this run from its last checkpoint")
-    train_parser.add_argument("--eval-every", type=int, default=25_000, help="simulator steps between evaluations")
-    train_parser.add_argument("--eval-episodes", type=int, default=10)
-    train_parser.add_argument("--eval-seed", type=int, help="seed of the evaluation env (default seed + 10000)")
+    train_parser.add_argument("--eval-every", type=positive_int, default=25_000, help="simulator steps between evaluations")
+    train_parser.add_argument("--eval-episodes", type=positive_int, default=10)
+    train_parser.add_argument("--eval-seed", type=seed, help="seed of the evaluation env (default seed + 10000)")
     train_parser.add_argument(
         "--deterministic-eval",
         action="store_true",
         help="evaluate with the filter's means and the mean action (default: sampled, the thesis's protocol)",
     )
     train_parser.add_argument("--stochastic-eval", action="store_true", help="the default; kept for old command lines")
-    train_parser.add_argument("--checkpoint-every", type=int, default=100_000, help="simulator steps between checkpoints")
-    train_parser.add_argument("--n-envs", type=int, default=1, help="training envs, each in its own process")
+    train_parser.add_argument(
+        "--checkpoint-every", type=positive_int, default=100_000, help="simulator steps between checkpoints"
+    )
+    train_parser.add_argument("--n-envs", type=positive_int, default=1, help="training envs, each in its own process")
     train_parser.add_argument("--quiet", action="store_true", help="no logs on stdout")
     train_parser.add_argument("--no-progress-bar", action="store_true")
     _add_model_flags(train_parser, "torch CPU threads (default: torch's; 1 is often fastest on a busy CPU)")
@@ -105,52 +141,54 @@ def build_parser() -> argparse.ArgumentParser:
     plot_parser.add_argument("--out", default=".", help="folder of curves.png, scores.csv and scores.md")
 
     eval_parser = commands.add_parser("evaluate", help="per-episode reward and cost of a saved model, and a video")
-    eval_parser.add_argument("model", help="a saved model (.zip)")
+    eval_parser.add_argument("model", help="a saved model (.zip)", metavar="MODEL")
     eval_parser.add_argument("--env", help="env id (default: the model's run's)")
-    eval_parser.add_argument("--episodes", type=int, default=10)
-    eval_parser.add_argument("--seed", type=int, default=0)
+    eval_parser.add_argument("--episodes", type=positive_int, default=10)
+    eval_parser.add_argument("--seed", type=seed, default=0, help="episode i is reset with seed + i")
     policy = eval_parser.add_mutually_exclusive_group()
     policy.add_argument("--stochastic", action="store_true", help="sample the filter and the action (the thesis's protocol)")
     policy.add_argument("--deterministic", action="store_true", help="the filter's means and the mean action")
     eval_parser.add_argument("--video", help="video file (.mp4 or .gif)")
-    eval_parser.add_argument("--video-episodes", type=int, default=1, help="episodes recorded into the video")
+    eval_parser.add_argument("--video-episodes", type=non_negative_int, default=1, help="episodes recorded into the video")
     eval_parser.add_argument("--obs-type", choices=["pixels", "state"])
-    eval_parser.add_argument("--device", default="auto")
+    eval_parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (one this machine has)")
 
     beliefs_parser = commands.add_parser(
         "beliefs", help="a pixel agent's frames beside its latent model's reconstructions and predicted cost, as a PNG"
     )
-    beliefs_parser.add_argument("model", help="a saved model (.zip) trained on pixels")
+    beliefs_parser.add_argument("model", help="a saved model (.zip) trained on pixels", metavar="MODEL")
     beliefs_parser.add_argument("--env", help="env id (default: the model's run's)")
-    beliefs_parser.add_argument("--seed", type=int, default=0, help="seed of the episode")
-    beliefs_parser.add_argument("--steps", type=int, help="agent steps to run (default: the whole episode)")
-    beliefs_parser.add_argument("--frames", type=int, default=10, help="frames shown")
+    beliefs_parser.add_argument("--seed", type=seed, default=0, help="seed of the episode")
+    beliefs_parser.add_argument("--steps", type=positive_int, help="agent steps to run (default: the whole episode)")
+    beliefs_parser.add_argument("--frames", type=positive_int, default=10, help="frames shown")
     beliefs_parser.add_argument("--stochastic", action="store_true", help="sample the filter and the action")
     beliefs_parser.add_argument("--out", default="beliefs.png", help="the PNG")
-    beliefs_parser.add_argument("--device", default="auto")
+    beliefs_parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (one this machine has)")
 
     tune_parser = commands.add_parser("tune", help="Optuna search, maximising eval reward under the cost budget")
     tune_parser.add_argument("--env", required=True)
-    tune_parser.add_argument("--timesteps", type=int, required=True, help="simulator steps per trial")
-    tune_parser.add_argument("--n-trials", type=int, default=10, help="trials run by this process")
+    tune_parser.add_argument("--timesteps", type=positive_int, required=True, help="simulator steps per trial")
+    tune_parser.add_argument("--n-trials", type=positive_int, default=10, help="trials run by this process")
     tune_parser.add_argument(
         "--total-trials",
-        type=int,
+        type=positive_int,
         help="instead of --n-trials: run trials until the study has this many finished, retrying those of dead workers",
     )
     tune_parser.add_argument(
         "--heartbeat-interval",
-        type=int,
+        type=positive_int,
         default=60,
         help="seconds between a running trial's heartbeats on an RDB storage; a trial silent for twice this is failed "
         "and retried",
     )
     tune_parser.add_argument("--storage", help="sqlite:///f.db, postgresql://..., or a journal file (*.log, *.journal)")
     tune_parser.add_argument("--study-name", default="dsslac")
-    tune_parser.add_argument("--n-evaluations", type=int, default=4, help="evaluations per trial (pruning points)")
-    tune_parser.add_argument("--eval-episodes", type=int, default=5)
-    tune_parser.add_argument("--n-startup-trials", type=int, default=5, help="random trials before TPE and pruning")
-    tune_parser.add_argument("--sampler-seed", type=int, help="seed of TPE (leave unset with several workers)")
+    tune_parser.add_argument("--n-evaluations", type=positive_int, default=4, help="evaluations per trial (pruning points)")
+    tune_parser.add_argument("--eval-episodes", type=positive_int, default=5)
+    tune_parser.add_argument(
+        "--n-startup-trials", type=non_negative_int, default=5, help="random trials before TPE and pruning"
+    )
+    tune_parser.add_argument("--sampler-seed", type=seed, help="seed of TPE (leave unset with several workers)")
     tune_parser.add_argument("--out", help="folder for the trials' CSV")
     _add_model_flags(
         tune_parser,
@@ -159,20 +197,66 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _checked_run_inputs(args: argparse.Namespace, set_elsewhere: dict[str, str]) -> tuple[dict[str, Any], dict[str, Any], int]:
+    """
+    The DSSLAC keywords (flags and ``--hyperparams`` on top of the preset) and env keywords (``--env-kwargs``, the
+    preset's under them) of ``train`` or ``tune``, checked before any work (``validation``): first the device, the env
+    id and every keyword's name and value, then on one probe of the env the keywords' values, ``info["cost"]``, the
+    spaces and the episode length.
+
+    :param args: the parsed command line
+    :param set_elsewhere: DSSLAC keywords the command sets itself -> the flag that sets them
+    :return: the DSSLAC keywords given (without the preset's), the env keywords given, and the env's action repeat
+    :raises InputError: naming the flag at fault
+    """
+    check_device(args.device)
+    spec = check_env_id(args.env)
+    env_kwargs = parse_hyperparams(args.env_kwargs, flag="--env-kwargs")
+    env_sources = {name: f"--preset {args.preset} (env keyword {name})" for name in PRESET_ENV_KWARGS.get(args.preset, {})}
+    env_sources.update({name: f"--env-kwargs {name}" for name in env_kwargs}, obs_type="--obs-type")
+    merged_env_kwargs = preset_env_kwargs(args.preset, env_kwargs)
+    obs_type = {"obs_type": args.obs_type} if args.obs_type is not None else {}
+    check_env_kwargs(spec, {**merged_env_kwargs, **obs_type}, env_sources)
+
+    flagged = {name: getattr(args, name) for name in HYPERPARAM_FLAGS if getattr(args, name) is not None}
+    given = parse_hyperparams(args.hyperparams)
+    sources = {name: f"--preset {args.preset} ({name})" for name in PRESETS[args.preset]}
+    sources.update({name: f"--{name.replace('_', '-')}" for name in flagged})
+    sources.update({name: f"--hyperparams {name}" for name in given})
+    hyperparams = {**flagged, **given}
+    resolved = preset_hyperparams(args.preset, hyperparams)
+    check_algorithm(DSSLAC, "LatentPolicy", resolved, sources, set_elsewhere)
+    env = probe_env(args.env, args.obs_type, merged_env_kwargs, env_sources)
+    try:
+        check_algorithm(DSSLAC, "LatentPolicy", resolved, sources, set_elsewhere, env)
+        return hyperparams, env_kwargs, action_repeat_of(env)
+    finally:
+        env.close()
+
+
 def _train_command(args: argparse.Namespace) -> None:
     if args.resume is not None:
         run_dir = resume(args.resume, sim_steps=args.sim_steps)
     else:
         if args.env is None:
-            raise ValueError("train needs --env (or --resume RUN_DIR)")
+            raise InputError("train needs --env (or --resume RUN_DIR)")
+        hyperparams, env_kwargs, action_repeat = _checked_run_inputs(
+            args, {"seed": "--seed", "device": "--device", "verbose": "--quiet"}
+        )
+        sim_steps = TrainConfig.sim_steps if args.sim_steps is None else args.sim_steps
+        if sim_steps < action_repeat:
+            raise InputError(
+                f"--sim-steps {sim_steps}: less than one agent step; {args.env} repeats each action {action_repeat} "
+                "simulator steps"
+            )
         config = TrainConfig(
             env=args.env,
-            sim_steps=args.sim_steps or 1_000_000,
+            sim_steps=sim_steps,
             seed=args.seed,
             preset=args.preset,
-            hyperparams=_flag_hyperparams(args),
+            hyperparams=hyperparams,
             obs_type=args.obs_type,
-            env_kwargs=parse_hyperparams(args.env_kwargs, flag="--env-kwargs"),
+            env_kwargs=env_kwargs,
             eval_every=args.eval_every,
             eval_episodes=args.eval_episodes,
             eval_deterministic=args.deterministic_eval,
@@ -191,17 +275,23 @@ def _train_command(args: argparse.Namespace) -> None:
 def _plot_command(args: argparse.Namespace) -> None:
     from sb3_dsslac.plotting import report
 
+    if Path(args.out).is_file():
+        raise InputError(f"--out {args.out}: a file; plot writes curves.png, scores.csv and scores.md into a folder")
     print(report(args.runs, args.out))
 
 
 def _model_and_run(args: argparse.Namespace) -> tuple[str, TrainConfig | None, bool]:
-    """The env id of ``args.model`` (``--env``, else its run's), its run's config if any, and whether that run used
-    this env."""
-    if not Path(args.model).is_file():
-        raise FileNotFoundError(f"No model file {args.model}")
+    """
+    The env id of ``args.model`` (``--env``, else its run's), its run's config if any, and whether that run used this
+    env; the model file, ``--device`` and ``--env`` checked first.
+    """
+    check_model_file(args.model)
+    check_device(args.device)
+    if args.env is not None:
+        check_env_id(args.env)
     run_config = find_run_config(Path(args.model))
     if args.env is None and run_config is None:
-        raise ValueError(f"{args.model} is not in a run folder: pass the env id (--env)")
+        raise InputError(f"MODEL {args.model} is not in a run folder (no {CONFIG_FILE} beside it): pass the env id (--env)")
     env_id = args.env or run_config.env  # type: ignore[union-attr]
     return env_id, run_config, run_config is not None and run_config.env == env_id
 
@@ -253,13 +343,19 @@ def _beliefs_command(args: argparse.Namespace) -> None:
 def _tune_command(args: argparse.Namespace) -> None:
     from sb3_dsslac.hpo import TuneSpec, summarize_study, tune
 
+    hyperparams, env_kwargs, action_repeat = _checked_run_inputs(args, {"device": "--device"})
+    if args.timesteps // action_repeat < args.n_evaluations:
+        raise InputError(
+            f"--timesteps {args.timesteps}: {args.timesteps // action_repeat} agent steps ({args.env} repeats each action "
+            f"{action_repeat} simulator steps), fewer than the --n-evaluations {args.n_evaluations} evaluations"
+        )
     spec = TuneSpec(
         env=args.env,
         sim_steps=args.timesteps,
         preset=args.preset,
-        hyperparams=_flag_hyperparams(args),
+        hyperparams=hyperparams,
         obs_type=args.obs_type,
-        env_kwargs=parse_hyperparams(args.env_kwargs, flag="--env-kwargs"),
+        env_kwargs=env_kwargs,
         n_evaluations=args.n_evaluations,
         eval_episodes=args.eval_episodes,
         device=args.device,
@@ -296,6 +392,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         command[args.command](args)
     except (ValueError, FileNotFoundError, FileExistsError) as error:
-        print(f"error: {error}", file=sys.stderr)
+        print(f"error: {' '.join(str(error).split())}", file=sys.stderr)  # one line, whatever the message
         return 2
     return 0

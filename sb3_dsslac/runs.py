@@ -7,6 +7,7 @@ import csv
 import json
 import re
 import shlex
+import shutil
 import sys
 from dataclasses import asdict, dataclass, field, fields
 from datetime import datetime
@@ -99,6 +100,8 @@ class TrainConfig:
         for name in ("sim_steps", "eval_every", "eval_episodes", "checkpoint_every", "n_envs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads must be positive or None, got {self.threads}")
 
 
 @dataclass
@@ -190,9 +193,15 @@ def parse_hyperparams(pairs: list[str] | None, flag: str = "--hyperparams") -> d
     hyperparams: dict[str, Any] = {}
     for pair in pairs or []:
         key, sep, value = pair.partition("=")
-        if not sep or not key:
+        if not sep or not key.strip():
             raise ValueError(f"{flag} takes key=value pairs, got {pair!r}")
-        hyperparams[key.strip()] = yaml.load(value, Loader=_HyperparamLoader)
+        try:
+            hyperparams[key.strip()] = yaml.load(value, Loader=_HyperparamLoader)
+        except yaml.YAMLError as error:
+            mark = getattr(error, "problem_mark", None)
+            where = f" at character {mark.column + 1}" if mark is not None else ""
+            problem = getattr(error, "problem", None) or "malformed"
+            raise ValueError(f"{flag} {key.strip()}: {value!r} is not valid YAML ({problem}{where})") from None
     return hyperparams
 
 
@@ -215,11 +224,17 @@ def train(config: TrainConfig, out: str | Path | None = None) -> Path:
     run_dir = Path(out) if out is not None else default_run_dir(config)
     if config.threads is not None:
         th.set_num_threads(config.threads)
-    if (run_dir / CONFIG_FILE).exists():
+    if (run_dir / CONFIG_FILE).exists() and find_checkpoint(run_dir) is not None:
         raise FileExistsError(
             f"{run_dir} already holds a run: continue it with `train --resume {run_dir}` or pick another --out"
         )
+    if (run_dir / CONFIG_FILE).exists():
+        raise FileExistsError(
+            f"{run_dir} already holds a run with no checkpoint to resume from (it stopped, or is still running, before "
+            "its first): delete the folder to start it again, or pick another --out"
+        )
     env = make_train_env(config.env, config.n_envs, config.obs_type, config.env_kwargs)
+    existing = set(run_dir.iterdir()) if run_dir.is_dir() else None
     run_dir.mkdir(parents=True, exist_ok=True)
     action_repeat = action_repeat_of(env)
     hyperparams = resolved_hyperparams(config, env)
@@ -239,10 +254,38 @@ def train(config: TrainConfig, out: str | Path | None = None) -> Path:
             "command": shlex.join(sys.argv),
         },
     }
-    (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(saved, sort_keys=False))
-    model = DSSLAC("LatentPolicy", env, seed=config.seed, device=config.device, verbose=config.verbose, **hyperparams)
-    _learn(model, config, run_dir, eval_seed, resumed=False)
+    model = None
+    try:
+        (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(saved, sort_keys=False))
+        model = DSSLAC("LatentPolicy", env, seed=config.seed, device=config.device, verbose=config.verbose, **hyperparams)
+        _learn(model, config, run_dir, eval_seed, resumed=False)
+    except BaseException:
+        if model is None:
+            env.close()
+        if not _holds_results(run_dir):  # a failed start: nothing may block the corrected command
+            _remove_new_entries(run_dir, existing)
+        raise
     return run_dir
+
+
+def _holds_results(run_dir: Path) -> bool:
+    """Whether a run folder holds anything a run writes once it is going: log rows, evaluations, checkpoints, models."""
+    progress = run_dir / "progress.csv"
+    logged = progress.is_file() and len(progress.read_text().splitlines()) > 1
+    saved = any(run_dir.glob("*.zip")) or any((run_dir / CHECKPOINT_DIR).glob("*"))
+    return logged or saved or (run_dir / "evaluations.npz").is_file()
+
+
+def _remove_new_entries(run_dir: Path, existing: set[Path] | None) -> None:
+    """Remove ``run_dir`` if it did not exist before (``existing`` None), else only what was added since."""
+    if existing is None:
+        shutil.rmtree(run_dir, ignore_errors=True)
+        return
+    for path in set(run_dir.iterdir()) - existing:
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
 
 
 def resume(run_dir: str | Path, sim_steps: int | None = None) -> Path:

@@ -234,7 +234,7 @@ def test_side_by_side_upscales_the_first_person_view() -> None:
 
 def test_bad_input_gives_clear_errors(tmp_path: Path, capsys) -> None:
     assert main(["train", "--env", "NoSuchEnv-v0", "--out", str(tmp_path / "x"), "--sim-steps=10"]) == 2
-    assert "Cannot make env 'NoSuchEnv-v0'" in capsys.readouterr().err
+    assert "--env NoSuchEnv-v0: no registered env" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
     assert main(["train", "--resume", str(tmp_path / "missing")]) == 2
     assert "No run folder" in capsys.readouterr().err
