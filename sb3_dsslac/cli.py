@@ -26,6 +26,7 @@ from sb3_dsslac.validation import (
     check_env_id,
     check_env_kwargs,
     check_model_file,
+    error_line,
     non_negative_int,
     positive_int,
     probe_env,
@@ -213,9 +214,11 @@ def _checked_run_inputs(args: argparse.Namespace, set_elsewhere: dict[str, str])
     spec = check_env_id(args.env)
     env_kwargs = parse_hyperparams(args.env_kwargs, flag="--env-kwargs")
     env_sources = {name: f"--preset {args.preset} (env keyword {name})" for name in PRESET_ENV_KWARGS.get(args.preset, {})}
-    env_sources.update({name: f"--env-kwargs {name}" for name in env_kwargs}, obs_type="--obs-type")
+    env_sources.update({name: f"--env-kwargs {name}" for name in env_kwargs})
     merged_env_kwargs = preset_env_kwargs(args.preset, env_kwargs)
-    obs_type = {"obs_type": args.obs_type} if args.obs_type is not None else {}
+    obs_type = {}
+    if args.obs_type is not None:  # it replaces an obs_type of --env-kwargs
+        obs_type, env_sources["obs_type"] = {"obs_type": args.obs_type}, "--obs-type"
     check_env_kwargs(spec, {**merged_env_kwargs, **obs_type}, env_sources)
 
     flagged = {name: getattr(args, name) for name in HYPERPARAM_FLAGS if getattr(args, name) is not None}
@@ -392,6 +395,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         command[args.command](args)
     except (ValueError, FileNotFoundError, FileExistsError) as error:
-        print(f"error: {' '.join(str(error).split())}", file=sys.stderr)  # one line, whatever the message
+        print(error_line(error), file=sys.stderr)
         return 2
     return 0

@@ -38,6 +38,12 @@ class InputError(ValueError):
     """Bad input, its message naming the flag or keyword it came from; the command line prints it as one line."""
 
 
+def error_line(error: Exception) -> str:
+    """The one line a command prints for ``error``: ``error: <message>``, its whitespace collapsed and the "Error: "
+    that some of SB3's messages start with dropped."""
+    return f"error: {' '.join(str(error).split()).removeprefix('Error: ')}"
+
+
 class Check(NamedTuple):
     """A condition on a keyword's value beyond its type, and the words the error message gives it."""
 
@@ -166,7 +172,7 @@ def _fits(value: Any, annotation: Any) -> bool | None:
     if origin is tuple and len(args) == 2 and args[1] is Ellipsis:  # converted with tuple(): a list does too
         return isinstance(value, (list, tuple)) and all(_fits(item, args[0]) is not False for item in value)
     if origin is tuple:
-        return isinstance(value, tuple) and len(value) == len(args) and all(map(_fits, value, args))
+        return isinstance(value, tuple) and len(value) == len(args) and False not in map(_fits, value, args)
     if origin is collections.abc.Callable:
         return callable(value)
     if origin is type:
@@ -234,7 +240,7 @@ def _keyword_names(function: Callable[..., Any], skip: tuple[str, ...] = ()) -> 
     ]
 
 
-def unknown_name(name: str, valid: list[str], label: str, owner: str) -> InputError:
+def _unknown_name(name: str, valid: list[str], label: str, owner: str) -> InputError:
     """The error for a keyword ``owner`` does not take: the closest names, then every valid one."""
     close = difflib.get_close_matches(name, valid, n=3)
     hint = f"did you mean {' or '.join(close)}? " if close else ""
@@ -272,7 +278,7 @@ def check_keywords(
     takes_any = any(p.kind == inspect.Parameter.VAR_KEYWORD for p in inspect.signature(function).parameters.values())
     for name in keywords:
         if name not in valid and not takes_any:
-            raise unknown_name(name, valid, sources.get(name, name), owner)
+            raise _unknown_name(name, valid, sources.get(name, name), owner)
     try:
         check_arguments(function, keywords, ranges)
     except ValueError as error:
@@ -290,7 +296,8 @@ def check_algorithm(
     """
     Check an SB3 algorithm's keywords (DSSLAC's) before training: names and values against its signature, the policy's
     keywords against the policy's, then the algorithm built without its networks (``_init_setup_model=False``) on
-    ``env`` (or none), which runs its own checks of spaces, combinations and the episode length.
+    ``env`` (or none), which runs its own checks of spaces, combinations and the episode length, and the replay
+    buffer's keywords against its class.
 
     :param algorithm: the algorithm class
     :param policy: its policy, a name of ``algorithm.policy_aliases`` or the class
@@ -316,9 +323,18 @@ def check_algorithm(
             skip=("observation_space", "action_space", "lr_schedule"),
         )
     try:
-        algorithm(policy, env, **{**hyperparams, "verbose": 0, "_init_setup_model": False})
+        model = algorithm(policy, env, **{**hyperparams, "verbose": 0, "_init_setup_model": False})
     except (ValueError, TypeError) as error:
         raise InputError(f"{_labels(error, sources)}: {error}") from None
+    buffer_kwargs = hyperparams.get("replay_buffer_kwargs") or {}
+    label = sources.get("replay_buffer_kwargs", "replay_buffer_kwargs")
+    check_keywords(
+        model.replay_buffer_class,
+        buffer_kwargs,
+        {name: f"{label} {name}" for name in buffer_kwargs},
+        model.replay_buffer_class.__name__,
+        skip=("buffer_size", "observation_space", "action_space", "device", "n_envs", "optimize_memory_usage"),
+    )
 
 
 def check_env_id(env_id: str, flag: str = "--env") -> gym.envs.registration.EnvSpec:

@@ -28,7 +28,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.evaluation import CostEvalCallback
 from sb3_dsslac.hpo import COST_CONSTRAINT, TrialCostEvalCallback, create_study, sample_dsslac_params
-from sb3_dsslac.validation import InputError, check_algorithm, check_device, check_env_id, check_env_kwargs
+from sb3_dsslac.validation import InputError, check_algorithm, check_device, check_env_id, check_env_kwargs, error_line
 
 ALGO = "dsslac"
 
@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
 
             enjoy()
     except InputError as error:
-        print(f"error: {' '.join(str(error).split())}", file=sys.stderr)
+        print(error_line(error), file=sys.stderr)
         return 2
     return 0
 

@@ -17,7 +17,7 @@ from sb3_dsslac import DSSLAC
 from sb3_dsslac.cli import PRESET_SUMMARIES, main
 from sb3_dsslac.presets import PRESETS
 from sb3_dsslac.runs import TrainConfig, train
-from sb3_dsslac.validation import InputError, check_algorithm
+from sb3_dsslac.validation import InputError, check_algorithm, error_line
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_cli import TINY_ENV, TINY_FLAGS, run_train
 
@@ -109,6 +109,11 @@ TRAIN_CASES = [
     (["--env", PG1, "--preset", "cpu_pixels32", "--env-kwargs", "action_repeat=0"], ["--env-kwargs action_repeat"]),
     (["--env", TINY_ENV, "--env-kwargs", "size: 3"], ["--env-kwargs", "key=value"]),
     (["--env", TINY_ENV, "--env-kwargs", "report_cost=false"], ["--env", "info['cost']"]),
+    (["--env", TINY_ENV, "--hyperparams", "replay_buffer_kwargs={foo: 1}"], ["--hyperparams replay_buffer_kwargs foo"]),
+    (["--env", TINY_ENV, "--hyperparams", "buffer_size=1e5"], ["--hyperparams buffer_size", "integer"]),
+    (["--env", TINY_ENV, "--hyperparams", "compile_updates=1"], ["--hyperparams compile_updates"]),
+    (["--env", PG1, "--env-kwargs", "obs_type=rgb"], ["--env-kwargs obs_type"]),
+    (["--env", PG1, "--env-kwargs", "max_episode_steps=0"], ["--env-kwargs max_episode_steps"]),
     (["--sim-steps", "10"], ["--env"]),
 ]
 
@@ -213,6 +218,10 @@ def test_check_algorithm_names_the_flag_and_the_valid_policy_keywords() -> None:
     with pytest.raises(InputError, match=r"--hyperparams policy_kwargs hidden_units: hidden_units must be a list of int"):
         check_algorithm(DSSLAC, "LatentPolicy", {"policy_kwargs": {"hidden_units": ["a"]}}, sources, {})
     check_algorithm(DSSLAC, "LatentPolicy", {"policy_kwargs": {"hidden_units": [8, 8]}}, sources, {})
+
+
+def test_the_error_line_is_one_line_without_sb3_s_prefix() -> None:
+    assert error_line(ValueError("Error: the file x wasn't\na zip-file")) == "error: the file x wasn't a zip-file"
 
 
 def test_every_preset_passes_the_checks() -> None:
