@@ -30,6 +30,7 @@ from sb3_dsslac.lagrange import LAGRANGE_RULES, CostBudget, inverse_softplus, wi
 from sb3_dsslac.numerics import raise_if_action_not_finite, resolve_bf16, tf32_matmul
 from sb3_dsslac.policies import LatentPolicy
 from sb3_dsslac.timing import TimeAccount
+from sb3_dsslac.validation import check_arguments
 
 SelfDSSLAC = TypeVar("SelfDSSLAC", bound="DSSLAC")
 
@@ -96,8 +97,10 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
     :param latent_batch_size: sequences per latent-model update
     :param sequence_length: transitions per sampled sequence (frames: ``sequence_length + 1``)
     :param actor_critic_transitions: transitions of each sampled sequence, its last ones, that the actor and critics
-        learn from: 1 (the thesis's, the last) to ``sequence_length`` (all: that many times the samples per update, for
-        the price of small networks on a larger batch)
+        learn from: 1 (the thesis's, the last) to ``sequence_length`` (all: that many times the samples per update). The
+        IQN cost critic then runs on ``batch_size * actor_critic_transitions * n_quantiles`` rows: with 4 transitions,
+        ``n_quantiles`` / 4 keeps the update's cost (at ``cpu_pixels32_bounded``'s sizes, 4 transitions ran at 0.74x the
+        updates/s of 1, and 4 with 8 quantiles at 1.01x; ``benchmarks/compare_trees.py``, one thread, AMD EPYC)
     :param tau: Polyak factor of the target critics
     :param gamma: discount of the reward
     :param cost_gamma: discount of the cost
@@ -215,6 +218,7 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
+        check_arguments(DSSLAC.__init__, locals())  # types and ranges that SB3 would leave to the first update
         super().__init__(
             policy,
             env,

@@ -20,6 +20,7 @@ from sb3_dsslac.runs import TrainConfig, train
 from sb3_dsslac.validation import InputError, check_algorithm, error_line
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_cli import TINY_ENV, TINY_FLAGS, run_train
+from tests.test_dsslac import SMALL_POLICY
 
 PG1 = "SafetyGym/PointGoal1-v0"
 BAD_POLICY_KWARGS = "policy_kwargs={z1_dim: 16"
@@ -209,6 +210,18 @@ def test_evaluate_beliefs_and_plot_check_their_flags(tmp_path: Path, capsys) -> 
     refused(capsys, ["plot", str(tmp_path / "nope")], "nope")
     refused(capsys, ["plot", str(tmp_path), "--out", str(not_a_zip)], "--out")
     refused(capsys, ["nonsense"], "nonsense")
+
+
+def test_the_python_api_checks_what_sb3_leaves_to_the_first_update() -> None:
+    for keywords, name in (({"tau": "abc"}, "tau"), ({"batch_size": "abc"}, "batch_size"), ({"batch_size": 0}, "batch_size")):
+        with pytest.raises(ValueError, match=rf"^{name} must be"):
+            DSSLAC("LatentPolicy", HazardPointEnv(), **keywords)
+    with pytest.raises(ValueError, match="batch_size must be an integer"):
+        DSSLAC("LatentPolicy", HazardPointEnv(), batch_size=64.0)
+    # Schedules, train-frequency tuples and the entropy coefficient's forms pass
+    keywords = {"learning_rate": lambda progress: 1e-4, "train_freq": (1, "episode"), "ent_coef": "auto_0.1"}
+    keywords["buffer_size"] = 100
+    DSSLAC("LatentPolicy", HazardPointEnv(), policy_kwargs=SMALL_POLICY, **keywords)
 
 
 def test_check_algorithm_names_the_flag_and_the_valid_policy_keywords() -> None:
