@@ -25,22 +25,14 @@ from sb3_dsslac.timing import TimeAccount
 PRETRAIN_BURST = 100
 
 
-# The extremes among the logged statistics, by suffix: their reduction over a burst's updates (tensor) and over bursts
-EXTREMES: dict[str, tuple[Callable[[th.Tensor], th.Tensor], Callable[[float, float], float]]] = {
-    "_min": (th.amin, min),
-    "_max": (th.amax, max),
-}
+# The extremes among the logged statistics, by suffix: their reduction over bursts (over a burst's updates, the least or
+# the most; the others are means)
+EXTREMES: dict[str, Callable[[float, float], float]] = {"_min": min, "_max": max}
 
 
-def _extreme(name: str) -> tuple[Callable[[th.Tensor], th.Tensor], Callable[[float, float], float]] | None:
-    """The reductions of a ``*_min`` or ``*_max`` statistic; None for the others, which are means."""
-    return next((reductions for suffix, reductions in EXTREMES.items() if name.endswith(suffix)), None)
-
-
-def _reduce_burst(name: str, values: th.Tensor) -> th.Tensor:
-    """A statistic over a burst (U,) -> (): the least of a ``*_min`` one, the most of a ``*_max`` one, else the mean."""
-    extreme = _extreme(name)
-    return values.mean() if extreme is None else extreme[0](values)
+def _extreme(name: str) -> Callable[[float, float], float] | None:
+    """The reduction over bursts of a ``*_min`` or ``*_max`` statistic; None for the others, which are means."""
+    return next((reduction for suffix, reduction in EXTREMES.items() if name.endswith(suffix)), None)
 
 
 def record_burst(logger: Logger, stats: dict[str, float]) -> None:
@@ -53,7 +45,13 @@ def record_burst(logger: Logger, stats: dict[str, float]) -> None:
     for key, value in stats.items():
         name = f"train/{key}"
         extreme = _extreme(key)
-        logger.record(name, value if extreme is None or name not in logged else extreme[1](value, logged[name]))
+        logger.record(name, value if extreme is None or name not in logged else extreme(value, logged[name]))
+
+
+def split_windows(batch: SequenceBatch, n_first: int) -> tuple[SequenceBatch, SequenceBatch]:
+    """The first ``n_first`` windows of ``batch`` and the others: one view op per field (two slices take two)."""
+    parts = [field.split([n_first, field.shape[0] - n_first]) for field in batch]
+    return SequenceBatch(*(first for first, _ in parts)), SequenceBatch(*(rest for _, rest in parts))
 
 
 class UpdateBursts:
@@ -62,8 +60,9 @@ class UpdateBursts:
     warm-up.
 
     :param step: the gradient step and its device state
-    :param lagrange_raw: the multiplier's raw parameter on the host (float64), copied to the device at the start of a
-        burst and, for the "critic" rule (which moves it on the device), back at its end
+    :param lagrange_raw: the multiplier's raw parameter, a float64 tensor on the host whatever the device (the training
+        envs' steps read and move it there), filled into the device's copy at the start of a burst and, for the
+        "critic" rule (which moves it on the device), read back with the burst's statistics at its end
     :param compile_updates: ``torch.compile`` the gradient steps as whole graphs (CUDA graphs on a GPU)
     :param time_account: where the first call of a compiled step counts its time, as ``compilation``
     """
@@ -81,7 +80,9 @@ class UpdateBursts:
         """Fill ``compiled_steps`` with the compiled ``full_step`` and ``last_actor_critic_step``, where torch can."""
         # torch 2.11 has the option but its inductor fails on the traced backward (AssertionError after minutes, on an
         # H200 at cpu_pixels32_bounded sizes)
-        if th.torch_version.TorchVersion(th.__version__) < (2, 13) or not hasattr(th._dynamo.config, "trace_autograd_ops"):
+        # A pre-release or local build of 2.13 ("2.13.0a0+...", as in NVIDIA's containers) counts as 2.13
+        release = tuple(int(part) for part in th.__version__.split(".")[:2])
+        if release < (2, 13) or not hasattr(th._dynamo.config, "trace_autograd_ops"):
             warnings.warn(
                 f"compile_updates needs a torch whose compiler traces the backward pass (2.13 or newer), this is "
                 f"{th.__version__}: the updates run eagerly"
@@ -145,19 +146,19 @@ class UpdateBursts:
         :param lagrange_learning_rate: the multiplier's SGD step size now
         :param n_updates: the updates so far, and ``timestep`` the agent step: where a NaN error says it was
         :param progress_bar: show a progress bar
-        :return: the mean latent loss of the last 100 updates (None without updates)
+        :return: the mean latent loss of the last burst, read with its statistics: of the last ``PRETRAIN_BURST``
+            updates, or of all of them where there are fewer (None without updates)
         """
-        losses: list[th.Tensor] = []
+        loss = None
         progress = tqdm(total=latent_updates, desc="latent pre-training", disable=not progress_bar)
         for done in range(0, latent_updates, PRETRAIN_BURST):
             count = min(PRETRAIN_BURST, latent_updates - done)
             indices = replay_buffer.sample_indices(count, self.step.latent_batch_size)
             history = self.burst(replay_buffer, indices, lagrange_learning_rate, latent_only=True)
-            losses = [*losses, *history["latent_loss"]][-100:]
-            self.end_burst(history, n_updates, timestep)
+            loss = self.end_burst(history, n_updates, timestep)["latent_loss"]
             progress.update(count)
         progress.close()
-        return float(th.stack(losses).mean()) if losses else None
+        return loss
 
     def burst(
         self, replay_buffer: SequenceReplayBuffer, indices: th.Tensor, lagrange_learning_rate: float, latent_only: bool = False
@@ -173,13 +174,18 @@ class UpdateBursts:
         pipelined = not (latent_only or self.step.share_latent_batch)
         history: dict[str, list[th.Tensor]] = defaultdict(list)
         waiting = None
-        for k in range(indices.shape[0]):
-            batch = replay_buffer.gather(indices[k])
-            stats = self.step.latent_step(batch) if latent_only else self.run_step(self.step.full_step, batch, waiting)
+        for step_indices in indices.unbind(0):
+            batch = replay_buffer.gather(step_indices)
+            if latent_only:
+                stats = self.step.latent_step(batch)
+            elif pipelined:  # the step's latent batch now, its actor-critic batch in the next step
+                latent_batch, next_waiting = split_windows(batch, self.step.latent_batch_size)
+                stats = self.run_step(self.step.full_step, latent_batch, waiting)
+                waiting = next_waiting
+            else:
+                stats = self.run_step(self.step.full_step, batch, None)
             for key, value in stats.items():
                 history[key].append(value)
-            if pipelined:
-                waiting = SequenceBatch(*(field[self.step.latent_batch_size :] for field in batch))
         if waiting is not None:
             for key, value in self.run_step(self.step.last_actor_critic_step, waiting).items():
                 history[key].append(value)
@@ -214,14 +220,19 @@ class UpdateBursts:
     def begin_burst(self, lagrange_learning_rate: float) -> None:
         """
         Bring the device copies of the step sizes and the multiplier up to date and clear the NaN notes: the steps read
-        no Python value that changes during training, so a compiled step never recompiles for one.
+        no Python value that changes during training, so a compiled step never recompiles for one. Each is a fill from
+        a host value, no copy from host memory (which would wait for the device). Compiled, every optimizer gets its
+        state now, and the step's device state is marked static, so that a CUDA graph holds and writes it in place.
         """
         step = self.step
         for optimizer, learning_rate in step.learning_rates.items():
             learning_rate.fill_(optimizer.param_groups[0]["lr"])
-            if self.compiled_steps:
+        if self.compiled_steps:
+            for optimizer in step.optimizers:
                 init_adam_state(optimizer)
-        step.lagrange_raw.copy_(self.lagrange_raw)
+            for tensor in step.device_state():  # after a load_state_dict the optimizers hold new tensors: every burst
+                th._dynamo.mark_static_address(tensor)
+        step.lagrange_raw.fill_(self.lagrange_raw)
         step.lagrange_learning_rate.fill_(lagrange_learning_rate)
         step.guard.reset()
 
@@ -231,20 +242,33 @@ class UpdateBursts:
         a ``*_max`` one) and the largest KL of an update (``kl_max``), the NaN notes and, for the "critic" rule, the
         multiplier. Raises if a loss became NaN or inf.
 
+        Every statistic has one value per update, so the burst's values are one (statistics, updates) table, reduced
+        row by row in three ops whatever the number of statistics.
+
         :param n_updates: the updates before this burst, and ``timestep`` the agent step: where a NaN error says it was
         """
         step = self.step
-        stacked = {name: th.stack(values).float() for name, values in history.items()}
-        stats = {name: _reduce_burst(name, values) for name, values in stacked.items()}
-        if "kl" in stacked:
-            # A spike can last a single update: the burst's largest KL beside its mean
-            stats["kl_max"] = stacked["kl"].amax()
+        names = list(history)
+        lengths = {name: len(values) for name, values in history.items()}
+        assert len(set(lengths.values())) == 1, lengths
+        table = th.stack([value for values in history.values() for value in values]).float().view(len(names), -1)
         packed = th.cat(
-            [th.stack(list(stats.values())), step.guard.first_nonfinite_update.float(), step.lagrange_raw.view(1).float()]
+            [
+                table.mean(dim=1),
+                table.amin(dim=1),
+                table.amax(dim=1),
+                step.guard.first_nonfinite_update.float(),
+                step.lagrange_raw.view(1).float(),
+            ]
         )
         values = packed.cpu().numpy().astype(np.float64)
-        n_stats = len(stats)
-        NonFiniteGuard.raise_if_noted(values[n_stats : n_stats + len(GUARDED_LOSSES)], n_updates, timestep)
+        n_stats = len(names)
+        means, smallest, largest = (values[k * n_stats : (k + 1) * n_stats] for k in range(3))
+        NonFiniteGuard.raise_if_noted(values[3 * n_stats : 3 * n_stats + len(GUARDED_LOSSES)], n_updates, timestep)
         if step.critic_lagrange_budget is not None:
             self.lagrange_raw.fill_(values[-1])
-        return dict(zip(stats, values[:n_stats].tolist(), strict=True))
+        by_suffix = {"_min": smallest, "_max": largest}
+        stats = {name: float(by_suffix.get(name[-4:], means)[k]) for k, name in enumerate(names)}
+        if "kl" in names:  # a spike can last a single update: the burst's largest KL beside its mean
+            stats["kl_max"] = float(largest[names.index("kl")])
+        return stats

@@ -27,6 +27,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from sb3_dsslac.numerics import autocast_enabled
+
 
 def _is_channels_last(x: Tensor) -> bool:
     """Whether a 4-d tensor lies in memory as (N, H, W, C) and not also as (N, C, H, W)."""
@@ -128,10 +130,13 @@ class DenseConv2d(nn.Conv2d):
     def forward(self, x: Tensor) -> Tensor:
         if tuple(x.shape[-2:]) != self.kernel_size or self.padding != (0, 0):
             return super().forward(x)
-        weight = self.weight
         if _is_channels_last(x):  # both flattened in (H, W, C) order: x as it lies in memory
-            x, weight = x.permute(0, 2, 3, 1), weight.permute(0, 2, 3, 1)
-        out = F.linear(x.reshape(x.shape[0], -1), weight.reshape(self.out_channels, -1), self.bias)
+            x, weight = x.permute(0, 2, 3, 1), self.weight.permute(2, 3, 1, 0)
+        else:
+            weight = self.weight.permute(1, 2, 3, 0)
+        # The weight as the product's right factor (k * k * C, C'), the memory F.linear would read, without its transpose
+        columns, rows = weight.reshape(-1, self.out_channels), x.reshape(x.shape[0], -1)
+        out = rows.mm(columns) if self.bias is None else torch.addmm(self.bias, rows, columns)
         return out.view(x.shape[0], self.out_channels, 1, 1)
 
 
@@ -279,6 +284,6 @@ class SubpixelConvTranspose2d(nn.ConvTranspose2d):
     def forward(self, x: Tensor, output_size: list[int] | None = None) -> Tensor:
         (stride, _), (padding, _), (output_padding, _) = self.stride, self.padding, self.output_padding
         plain = output_size is not None or self.groups != 1 or self.dilation != (1, 1) or x.shape[-1] != x.shape[-2]
-        if plain or torch.is_autocast_enabled(x.device.type):  # autocast casts the inputs of ATen's own layer only
+        if plain or autocast_enabled(x.device.type):  # autocast casts the inputs of ATen's own layer only
             return super().forward(x, output_size)
         return _subpixel_op(x, self.weight, self.bias, stride, padding, output_padding)

@@ -263,6 +263,10 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         self.episode_length = episode_length
         self.lagrange = lagrange
         self.lagrange_init = lagrange_init
+        # The multiplier's raw parameter, on the host whatever the device: the training envs' costs move it at every agent
+        # step (LagrangeCallback), a burst of updates reads it once (and the "critic" rule writes it once). Saved with the
+        # other attributes, so that a load on any device (even "meta") finds it here
+        self.lagrange_raw = th.tensor(inverse_softplus(lagrange_init), dtype=th.float64)
         self.lagrange_learning_rate = lagrange_learning_rate
         self.lr_decay_milestone = lr_decay_milestone
         self.lr_decay_factor = lr_decay_factor
@@ -335,10 +339,10 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
+        self.policy.latent.set_layout_for(self.device)
         self.replay_buffer.set_channels_last_frames(self.policy.latent.channels_last)
         if self.device.type == "cpu":  # the updates' freed tensors stay mapped for the next update (allocator.py)
             keep_freed_memory()
-        self.lagrange_raw = th.tensor(inverse_softplus(self.lagrange_init), dtype=th.float64)
         self.target_entropy = -float(self.policy.action_dim) if self.target_entropy == "auto" else float(self.target_entropy)
         self.ent_coef_optimizer: th.optim.Adam | None = None
         log_ent_coef = ent_coef_tensor = None
@@ -559,6 +563,25 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
                 progress_bar=progress_bar,
             )
 
+    @classmethod
+    def load(
+        cls: type[SelfDSSLAC],
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfDSSLAC:
+        """
+        SB3's ``load``, with the multiplier's raw parameter on the host whatever ``device``: files saved before it moved
+        into the saved attributes hold it as a torch variable, which SB3 loads onto ``device``.
+        """
+        model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+        model.lagrange_raw.data = model.lagrange_raw.data.cpu()
+        return model
+
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
         """SB3's ``load_replay_buffer``, with the frames then stored in the layout of this model's convolutions."""
         super().load_replay_buffer(path, truncate_last_traj)
@@ -570,4 +593,4 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         ent_coef = "log_ent_coef" if self.ent_coef_optimizer is not None else "ent_coef_tensor"
-        return ["policy", *self._optimizer_names()], [ent_coef, "lagrange_raw"]
+        return ["policy", *self._optimizer_names()], [ent_coef]

@@ -116,6 +116,23 @@ class GradientStep:
             assert list(policy.cost_critic.parameters())[:n_cosine] == list(policy.cost_critic.cosine_net.parameters())
             self.cost_critic_clip_groups = (slice(0, n_cosine), slice(n_cosine, None))
 
+    def device_state(self) -> list[th.Tensor]:
+        """
+        Every tensor the step reads or writes that is not a parameter or buffer of the policy's modules: the device
+        copies of the step sizes and the multiplier, the NaN notes, the entropy coefficient and each optimizer's state
+        (Adam's moments and step counts, once created). A step replayed as a CUDA graph holds them at fixed addresses
+        (``UpdateBursts`` marks them static): the graph may then write them, and none is copied in at each replay.
+        """
+        guard = self.guard
+        tensors = [*self.learning_rates.values(), self.lagrange_raw, self.lagrange_learning_rate]
+        tensors += [guard.first_nonfinite_update, guard.update_index, guard.pipelined_lags]
+        tensors += [tensor for tensor in (self.log_ent_coef, self.ent_coef_tensor) if tensor is not None]
+        for optimizer in self.optimizers:
+            tensors += [
+                value for state in optimizer.state.values() for value in state.values() if isinstance(value, th.Tensor)
+            ]
+        return tensors
+
     def full_step(self, batch: SequenceBatch, waiting: SequenceBatch | None) -> dict[str, th.Tensor]:
         """
         One gradient step of Algorithm 1: a latent-model update, then an actor-critic update (``compile_updates``
@@ -128,19 +145,19 @@ class GradientStep:
         parameter, so this order computes the same updates with one rollout and first-frame pass fewer per step (the
         waiting batch is still encoded on its own, without gradient).
 
-        :param batch: the sampled windows: ``latent_batch_size + batch_size`` of them (two independent batches, the
-            actor-critic one waits), or ``max(latent_batch_size, batch_size)`` with ``share_latent_batch``
+        :param batch: the step's latent batch, ``latent_batch_size`` windows (its actor-critic batch, sampled with it, waits
+            in the burst), or with ``share_latent_batch`` the step's ``max(latent_batch_size, batch_size)`` windows
         :param waiting: the previous step's actor-critic batch, None in a burst's first step or with ``share_latent_batch``
         :return: the detached statistics of the step
         """
         latent = self.policy.latent
-        n_latent, batch_size = self.latent_batch_size, self.batch_size
-        latent_batch = SequenceBatch(*(field[:n_latent] for field in batch))
         if not self.share_latent_batch:
-            stats, latents = self.latent_update(latent_batch, filter_batch=waiting)
+            stats, latents = self.latent_update(batch, filter_batch=waiting)
             if waiting is not None:
                 stats.update(self.actor_critic_update(waiting, latents.float()))
         else:
+            n_latent, batch_size = self.latent_batch_size, self.batch_size
+            latent_batch = SequenceBatch(*(field[:n_latent] for field in batch))
             ac_batch = SequenceBatch(*(field[:batch_size] for field in batch))
             with bf16_autocast(self.bf16, self.device):
                 observations = self.policy.preprocess(batch.observations)
@@ -225,6 +242,9 @@ class GradientStep:
         :param latents: their posterior samples (B, L+1, z_dim)
         """
         k = self.actor_critic_transitions
+        if k == 1:  # the thesis's: one view of each field (the general form below takes two)
+            rewards, costs, terminated = (field[:, -1:] for field in (batch.rewards, batch.costs, batch.terminated))
+            return Transitions(latents[:, -2], batch.actions[:, -1], rewards, costs, terminated, latents[:, -1])
         z_dim = latents.shape[-1]
         return Transitions(
             latents=latents[:, -k - 1 : -1].reshape(-1, z_dim),
@@ -248,7 +268,10 @@ class GradientStep:
         transitions = self.transitions(batch, latents)
         z, actions = transitions.latents, transitions.actions
         n = z.shape[0]
-        ent_coef = th.exp(self.log_ent_coef.detach()) if self.log_ent_coef is not None else self.ent_coef_tensor
+        ent_coef = self.ent_coef_tensor
+        if self.log_ent_coef is not None:
+            with th.no_grad():
+                ent_coef = self.log_ent_coef.exp()
         multiplier = F.softplus(self.lagrange_raw)
 
         target_taus = sample_taus(n, self.n_quantiles, self.device)
@@ -279,7 +302,7 @@ class GradientStep:
             "cost_critic_loss": cost_critic_loss.detach(),
             "actor_loss": actor_loss.detach(),
             "cost_cvar": cost_value.detach().mean(),
-            "ent_coef": ent_coef.detach().reshape(()),
+            "ent_coef": ent_coef.reshape(()),
         }
         if self.cvar_risk_level < 1.0:
             with th.no_grad():

@@ -206,7 +206,7 @@ class CostBudget:
 
     @property
     def lagrange_multiplier(self) -> float:
-        """The current Lagrange multiplier (softplus of its raw parameter)."""
+        """The current Lagrange multiplier (softplus of its raw parameter, a host tensor: reading it waits for no device)."""
         return softplus(float(self.lagrange_raw.numpy()))
 
     @property

@@ -1,5 +1,6 @@
 """Sequential latent variable model of (DS-)SLAC: encoder, decoder, latent dynamics, reward and cost decoders."""
 
+import contextlib
 import itertools
 import math
 from collections.abc import Callable
@@ -12,6 +13,7 @@ from torch import Tensor, nn
 from sb3_dsslac.convolutions import ColumnPairedConv2d, DenseConv2d, DenseConvTranspose2d, SubpixelConvTranspose2d
 from sb3_dsslac.fused_rollout import posterior_steps
 from sb3_dsslac.gaussian import STD_EPS, GaussianBounds
+from sb3_dsslac.numerics import autocast_enabled
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 _LOG_COST_EPS = math.log(1e-6)
@@ -67,7 +69,7 @@ def fixed_std_gaussian_nll(x: Tensor, mean: Tensor, std: float) -> Tensor:
     ``-log N(x | mean, std^2)`` of (B, ...) tensors summed over all but the first dim, mean over it: a scalar, from one
     squared-error sum (three ops forward and two backward, where the elementwise form takes seven and about as many).
     """
-    values_per_row = x[0].numel()
+    values_per_row = math.prod(x.shape[1:])
     squared_error = F.mse_loss(mean.float(), x, reduction="sum")
     return squared_error.mul(0.5 / (std**2 * x.shape[0])).add(values_per_row * (math.log(std) + _HALF_LOG_2PI))
 
@@ -140,20 +142,22 @@ def _image_decoder(z_dim: int, channels: int, size: int, widths: tuple[int, ...]
     return nn.Sequential(*layers)
 
 
-def channels_last_is_faster(widths: tuple[int, ...]) -> bool:
+def channels_last_is_faster(widths: tuple[int, ...], device: torch.device) -> bool:
     """
-    Whether the convolutions of these encoder ``widths`` run channels-last (NHWC), the layout measured faster for them
-    (the replay buffer then stores the frames channels-last too); the arithmetic is the same.
+    Whether the convolutions of these encoder ``widths`` run channels-last (NHWC) on ``device``, the layout measured
+    faster for them (the replay buffer then stores the frames channels-last too); the arithmetic is the same.
 
-    - The thesis's widths (32 channels up): NHWC on CPUs (oneDNN) and tensor cores alike.
+    - The thesis's widths (32 channels up): NHWC on CPUs (oneDNN) and GPUs (tensor cores) alike.
     - Narrower widths on an x86 CPU (AVX2 or AVX512): in NCHW, oneDNN reorders every activation to its blocked layout
       and back, where its NHWC kernels need none: 7.4 of 27 ms of oneDNN work in a compiled ``cpu_pixels`` update on an
       Intel Xeon's AVX512, 7.7 of 36 ms with ATen, inductor, oneDNN and MKL held to AVX2 on it (2026-12-05,
       docs/performance.md). With the frames stored channels-last, NHWC ran 1.05x (AVX512) and 1.09x (held to AVX2) the
       NCHW updates/s on 32x32 frames too. Not yet re-measured on an AVX2 CPU itself (an AMD EPYC).
-    - NCHW elsewhere: other CPUs were not measured.
+    - NCHW elsewhere, GPUs included: narrow widths were not measured there, and the reasons above are oneDNN's.
     """
-    return widths[0] >= 32 or torch.backends.cpu.get_cpu_capability().startswith("AVX")
+    if widths[0] >= 32:
+        return True
+    return device.type == "cpu" and torch.backends.cpu.get_cpu_capability().startswith("AVX")
 
 
 class LatentModel(nn.Module):
@@ -252,10 +256,16 @@ class LatentModel(nn.Module):
         self.cost_decoder = build_mlp(transition_dim, 1, hidden_units, nn.ELU)
 
         init_weights(self)
-        # The convolutions' layout; the replay buffer stores frames in it (SequenceReplayBuffer.set_channels_last_frames)
-        self.channels_last = len(self.observation_shape) == 3 and channels_last_is_faster(self.image_channels)
-        if self.channels_last:
-            self.to(memory_format=torch.channels_last)
+        self.set_layout_for(torch.device("cpu"))  # where modules are built; DSSLAC sets its own device's
+
+    def set_layout_for(self, device: torch.device) -> None:
+        """
+        Lay the convolutions' weights out in the layout measured faster for them on ``device``
+        (``channels_last_is_faster``), noted in ``channels_last``: the replay buffer stores the frames in it
+        (``SequenceReplayBuffer.set_channels_last_frames``). Only the layout changes, not the values or the parameters.
+        """
+        self.channels_last = len(self.observation_shape) == 3 and channels_last_is_faster(self.image_channels, device)
+        self.to(memory_format=torch.channels_last if self.channels_last else torch.contiguous_format)
 
     def encode(self, observations: Tensor) -> Tensor:
         """Observations (B, T, *observation_shape) -> features (B, T, feature_dim)."""
@@ -277,8 +287,7 @@ class LatentModel(nn.Module):
 
         :param noise: the standard normal noise of the z1 and z2 samples, (T+1, B, Z1) and (T+1, B, Z2); drawn if None
         """
-        compiling = torch.compiler.is_compiling()
-        mixed_precision = torch.is_autocast_enabled(features.device.type) and not compiling
+        mixed_precision = autocast_enabled(features.device.type)
         if mixed_precision:  # the rollout's small matrix products run in float32 below; bfloat16 is for the convolutions
             features = features.float()
         batch, frames = features.shape[:2]
@@ -294,11 +303,11 @@ class LatentModel(nn.Module):
         first = (z1_mean, z1_std, z1, z2)
         if frames == 1:
             return LatentRollout(*(value.unsqueeze(1) for value in first))
-        if compiling:  # the compiler differentiates (and fuses) the steps itself
-            return self._posterior_steps(features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:])
         if mixed_precision:
             first = tuple(value.float() for value in first)
-        with torch.autocast(features.device.type, enabled=False):
+        with torch.autocast(features.device.type, enabled=False) if mixed_precision else contextlib.nullcontext():
+            if torch.compiler.is_compiling():  # the compiler differentiates (and fuses) the steps itself
+                return self._posterior_steps(features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:])
             steps = posterior_steps(
                 features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:], self.z1_posterior, self.z2_transition
             )
@@ -398,13 +407,15 @@ class LatentModel(nn.Module):
         other_z = None
         if other is not None:
             n_own = observations.shape[0]
-            other_z = z[n_own:].detach()
-            z, z1_mean, z1_std, z2_prev = z[:n_own], z1_mean[:n_own], z1_std[:n_own], z2_prev[:n_own]
+            z, other_z = z.split([n_own, z.shape[0] - n_own])
+            other_z = other_z.detach()
+            z1_mean, z1_std, z2_prev = z1_mean[:n_own], z1_std[:n_own], z2_prev[:n_own]
 
         # KL(q(z1_t | .) || p(z1_t | .)): N(0, I) at t = 0, teacher-forced p(z1_t | z2_{t-1}, a_{t-1}) after.
         prior_mean, prior_std = self.z1_prior(z2_prev, actions)
-        prior_mean = torch.cat([torch.zeros_like(z1_mean[:, :1]), prior_mean], dim=1)
-        prior_std = torch.cat([torch.ones_like(z1_std[:, :1]), prior_std], dim=1)
+        # N(0, 1) at t = 0, padded in front: one op each, where a cat with a filled slice takes three
+        prior_mean = F.pad(prior_mean, (0, 0, 1, 0))
+        prior_std = F.pad(prior_std, (0, 0, 1, 0), value=1.0)
         kl = gaussian_kl(z1_mean, z1_std, prior_mean, prior_std).sum(dim=(1, 2)).mean()
 
         reconstruction = self.decode(z)
@@ -425,17 +436,15 @@ class LatentModel(nn.Module):
         cost_loss = -self.cost_loss_weight * cost_ll.sum(dim=1).mean()
 
         total = kl + image_loss + reward_loss + cost_loss
-        info = {
-            "kl": kl,
-            "image_loss": image_loss,
-            "reward_loss": reward_loss,
-            "cost_loss": cost_loss,
-            "prior_std_min": prior_std[:, 1:].amin(),
-            "posterior_std_min": z1_std.amin(),
-            "z_abs_max": z.abs().amax(),
-            "reconstruction_abs_max": reconstruction.abs().amax(),
-        }
-        return total, {key: value.detach() for key, value in info.items()}, other_z
+        terms = {"kl": kl, "image_loss": image_loss, "reward_loss": reward_loss, "cost_loss": cost_loss}
+        with torch.no_grad():  # computed without gradient, nothing to detach
+            extremes = {
+                "prior_std_min": prior_std[:, 1:].amin(),
+                "posterior_std_min": z1_std.amin(),
+                "z_abs_max": z.abs().amax(),
+                "reconstruction_abs_max": reconstruction.abs().amax(),
+            }
+        return total, {**{key: value.detach() for key, value in terms.items()}, **extremes}, other_z
 
     def sample_latents(self, observations: Tensor, actions: Tensor) -> Tensor:
         """Posterior samples ``z = [z1, z2]`` (B, T+1, z_dim) of observations (B, T+1, *obs_shape), actions (B, T, A)."""

@@ -13,26 +13,36 @@ import torch as th
 
 
 @contextlib.contextmanager
-def tf32_matmul(enabled: bool) -> Iterator[None]:
+def float32_precision(precision: str) -> Iterator[None]:
     """
-    TF32 for CUDA float32 matrix products and cuDNN convolutions inside the block when ``enabled`` (PyTorch's switches
-    are process-wide, so the previous values come back when the block ends, also on an error); nothing otherwise.
+    CUDA float32 matrix products and cuDNN convolutions at ``precision`` ("tf32" or "ieee") inside the block, through
+    ``fp32_precision``, the switches torch wants now (once a caller set them, torch raises on a read of the legacy
+    ``allow_tf32``). They are process-wide: the previous values come back when the block ends, also on an error.
     """
-    if not enabled:
-        yield
-        return
-    previous = th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32
-    th.backends.cuda.matmul.allow_tf32 = th.backends.cudnn.allow_tf32 = True
+    switches = (th.backends.cuda.matmul, th.backends.cudnn.conv)
+    previous = [switch.fp32_precision for switch in switches]
+    for switch in switches:
+        switch.fp32_precision = precision
     try:
         yield
     finally:
-        th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32 = previous
+        for switch, value in zip(switches, previous, strict=True):
+            switch.fp32_precision = value
+
+
+def tf32_matmul(enabled: bool) -> contextlib.AbstractContextManager:
+    """TF32 for CUDA float32 matrix products and cuDNN convolutions inside the block when ``enabled``; else nothing."""
+    return float32_precision("tf32") if enabled else contextlib.nullcontext()
 
 
 def has_native_bf16(device: th.device) -> bool:
-    """Whether ``device`` computes bfloat16 natively: a CUDA GPU that supports it, or a CPU with AVX512-BF16 or AMX."""
+    """
+    Whether ``device`` computes bfloat16 natively: a CUDA GPU of compute capability 8.0 or newer (Ampere on; older ones
+    emulate it, which ``torch.cuda.is_bf16_supported()`` counts), asked of that GPU, not the current one; a CPU with
+    AVX512-BF16 or AMX.
+    """
     if device.type == "cuda":
-        return th.cuda.is_bf16_supported()
+        return th.cuda.get_device_capability(device) >= (8, 0)
     if device.type == "cpu":
         return th.cpu._is_avx512_bf16_supported() or th.cpu._is_amx_tile_supported()
     return False
@@ -55,6 +65,11 @@ def resolve_bf16(bf16: bool | str, device: th.device) -> bool:
             "several times slower than float32: the latent model stays in float32. Pass bf16='auto' to choose silently."
         )
     return native
+
+
+def autocast_enabled(device_type: str) -> bool:
+    """Whether autocast is on for ``device_type`` ("cpu", "cuda"); False for a device without autocast ("meta")."""
+    return th.amp.is_autocast_available(device_type) and th.is_autocast_enabled(device_type)
 
 
 def bf16_autocast(enabled: bool, device: th.device) -> contextlib.AbstractContextManager:
@@ -100,11 +115,12 @@ class NonFiniteGuard:
         start = GUARDED_LOSSES.index(names[0])
         assert tuple(names) == GUARDED_LOSSES[start : start + len(names)], names
         first = self.first_nonfinite_update[start : start + len(names)]
-        not_finite = ~th.isfinite(th.stack([losses[name] for name in names]))
+        values = th.stack([losses[name] for name in names])
+        not_finite = th.isnan(values) | th.isinf(values)  # three ops where ~isfinite dispatches five
         update = self.update_index
         if pipelined:
             update = update - self.pipelined_lags[start : start + len(names)]
-        first.copy_(th.where((first < 0) & not_finite, update, first))
+        th.where((first < 0) & not_finite, update, first, out=first)  # in place: no copy
 
     def next_update(self) -> None:
         """Count one update of the burst."""

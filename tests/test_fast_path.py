@@ -10,6 +10,7 @@ import torch as th
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_dsslac import DSSLAC, convolutions, numerics
+from sb3_dsslac.bursts import split_windows
 from sb3_dsslac import latent as latent_module
 from sb3_dsslac.dispatch import DispatchCounter, optimizer_step_tensors
 from sb3_dsslac.latent import LatentModel
@@ -180,7 +181,7 @@ def test_compiled_update_matches_eager(monkeypatch) -> None:
     # Minutes on 2 cores with a cold Inductor cache (17 s with a warm one): torch.compile builds the whole gradient step
     # and the burst's last actor-critic step with Inductor's C++ kernels, whatever the networks' sizes. The cpu_pixels
     # presets' narrow first layer, channels-last and column-paired (as on an AVX512 CPU), whatever this CPU
-    monkeypatch.setattr(latent_module, "channels_last_is_faster", lambda widths: True)
+    monkeypatch.setattr(latent_module, "channels_last_is_faster", lambda widths, device: True)
     monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", True)
     eager, compiled = warmed_up_pair({"image_channels": (8, 8, 16, 16)}, compile_updates=True)
     assert compiled.policy.latent.channels_last
@@ -201,8 +202,9 @@ def test_compiled_update_matches_eager(monkeypatch) -> None:
             moved = 1
         th.testing.assert_close(th.stack(compiled_stats[key][moved:]), th.stack(values[moved:]), rtol=1e-2, atol=1e-3, msg=key)
     # The whole step is one graph: a few hundred ops where eager dispatches thousands, and no host read
-    batch, waiting = (compiled.replay_buffer.gather(indices[k]) for k in (2, 0))
-    waiting = type(waiting)(*(field[compiled.latent_batch_size :] for field in waiting))
+    (batch, _), (_, waiting) = (
+        split_windows(compiled.replay_buffer.gather(indices[k]), compiled.latent_batch_size) for k in (2, 0)
+    )
     with DispatchCounter() as compiled_counter:
         compiled.updates.run_step(compiled.updates.step.full_step, batch, waiting)
     with DispatchCounter() as eager_counter:

@@ -414,29 +414,30 @@ def test_iqn_cosine_and_quantile_nets_are_clipped_each(monkeypatch) -> None:
 
 
 def test_tf32_scope_restores_the_process_settings() -> None:
-    flags = th.backends.cuda.matmul, th.backends.cudnn
-    before = tuple(flag.allow_tf32 for flag in flags)
-    th.backends.cuda.matmul.allow_tf32 = False
+    switches = th.backends.cuda.matmul, th.backends.cudnn.conv
+    before = tuple(switch.fp32_precision for switch in switches)
+    th.backends.cuda.matmul.fp32_precision = "ieee"
     try:
         with numerics.tf32_matmul(True):
-            assert th.backends.cuda.matmul.allow_tf32 and th.backends.cudnn.allow_tf32
-        assert not th.backends.cuda.matmul.allow_tf32
+            assert tuple(switch.fp32_precision for switch in switches) == ("tf32", "tf32")
+        assert th.backends.cuda.matmul.fp32_precision == "ieee"
         with pytest.raises(KeyError), numerics.tf32_matmul(True):
             raise KeyError
-        assert not th.backends.cuda.matmul.allow_tf32
+        assert th.backends.cuda.matmul.fp32_precision == "ieee"
         with numerics.tf32_matmul(False):
-            assert not th.backends.cuda.matmul.allow_tf32
+            assert th.backends.cuda.matmul.fp32_precision == "ieee"
     finally:
-        th.backends.cuda.matmul.allow_tf32, th.backends.cudnn.allow_tf32 = before
+        for switch, precision in zip(switches, before, strict=True):
+            switch.fp32_precision = precision
 
 
 def test_tf32_is_requested_only_for_learning_on_cuda(monkeypatch) -> None:
     requested = []
     original = dsslac_module.tf32_matmul
     monkeypatch.setattr(dsslac_module, "tf32_matmul", lambda enabled: requested.append(enabled) or original(enabled))
-    before = th.backends.cuda.matmul.allow_tf32
+    before = th.backends.cuda.matmul.fp32_precision
     model = small_model(HazardPointEnv(), device="cpu")
-    assert th.backends.cuda.matmul.allow_tf32 == before and requested == []  # not at construction
+    assert th.backends.cuda.matmul.fp32_precision == before and requested == []  # not at construction
     model.learn(10)
     assert requested == [False]  # a CPU model leaves the switches alone
     model.device = th.device("cuda")  # what the scope asks for on CUDA (nothing runs: no steps left)
