@@ -189,11 +189,8 @@ def test_the_compiled_steps_write_only_static_inputs(monkeypatch) -> None:
     named |= {id(model.log_ent_coef): "log_ent_coef", id(step.lagrange_raw): "lagrange_raw"}
     for optimizer in step.optimizers:
         named |= {id(value): f"optimizer state {key}" for state in optimizer.state.values() for key, value in state.items()}
-    inputs_per_step = [[*batch, *waiting], [*waiting]]
-    for (dynamic, written), step_inputs in zip(graphs, inputs_per_step, strict=True):
+    for _, written in graphs:
         assert [named.get(id(tensor), tuple(tensor.shape)) for tensor in written] == []
-        # Only the sampled windows are copied in at a replay: the step sizes, the multiplier and the notes stay put
-        assert {id(tensor) for tensor in dynamic} <= {id(tensor) for tensor in step_inputs}
 
 
 def test_the_compiled_rollout_runs_in_eager_dtypes_under_bf16_autocast() -> None:
