@@ -8,7 +8,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 # Plain torch modules, usable without Stable-Baselines3
-NETWORKS = ("latent", "critics", "actor", "fused_rollout", "convolutions", "gaussian")
+# Torch-only modules: the networks and the numerics helpers they use (autocast, precision), none of them importing SB3
+NETWORKS = ("latent", "critics", "actor", "fused_rollout", "convolutions", "gaussian", "numerics")
 # What DSSLAC delegates its updates to: below it, never importing it back
 UPDATE_ENGINE = ("bursts", "gradient_step", "numerics", "lagrange", "optim")
 
