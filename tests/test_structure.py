@@ -7,7 +7,6 @@ import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-# Plain torch modules, usable without Stable-Baselines3
 # Torch-only modules: the networks and the numerics helpers they use (autocast, precision), none of them importing SB3
 NETWORKS = ("latent", "critics", "actor", "fused_rollout", "convolutions", "gaussian", "numerics")
 # What DSSLAC delegates its updates to: below it, never importing it back
