@@ -192,16 +192,21 @@ def check_burst_against_cpu(device: th.device, folder: Path) -> str:
     return f"{len(statistics)} statistics x 3 updates: first update within {first:.1e}, all within {later:.1e}"
 
 
-def check_no_sync_in_a_burst(device: th.device, folder: Path) -> str:
-    model = moved(small_model(), folder, device)
-    model.train(gradient_steps=2, batch_size=model.batch_size)  # the device's one-off set-ups (handles, allocations)
-    indices = model.replay_buffer.sample_indices(3, model.latent_batch_size + model.batch_size)
+def burst_without_sync(model: DSSLAC, updates: int) -> None:
+    """A burst of ``updates`` updates under ``set_sync_debug_mode("error")``: any host sync inside it raises."""
+    indices = model.replay_buffer.sample_indices(updates, model.latent_batch_size + model.batch_size)
     th.cuda.set_sync_debug_mode("error")
     try:
         history = model.updates.burst(model.replay_buffer, indices, model.current_lagrange_learning_rate)
     finally:
         th.cuda.set_sync_debug_mode("default")
     model.updates.end_burst(history, 0, 0)
+
+
+def check_no_sync_in_a_burst(device: th.device, folder: Path) -> str:
+    model = moved(small_model(), folder, device)
+    model.train(gradient_steps=2, batch_size=model.batch_size)  # the device's one-off set-ups (handles, allocations)
+    burst_without_sync(model, 3)
     return "3 eager updates under set_sync_debug_mode('error')"
 
 
@@ -237,13 +242,7 @@ def check_cuda_graphs(device: th.device, folder: Path) -> str:
     compile_seconds = time.perf_counter() - start
     model.train(gradient_steps=2, batch_size=model.batch_size)
     assert model.updates.compiled_steps, "compile_updates fell back to eager"
-    indices = model.replay_buffer.sample_indices(2, model.latent_batch_size + model.batch_size)
-    th.cuda.set_sync_debug_mode("error")
-    try:
-        history = model.updates.burst(model.replay_buffer, indices, model.current_lagrange_learning_rate)
-    finally:
-        th.cuda.set_sync_debug_mode("default")
-    model.updates.end_burst(history, 0, 0)
+    burst_without_sync(model, 2)
     skipped = counters["inductor"]["cudagraph_skips"] - skips
     assert skipped == 0, f"cudagraph_skips {skipped} (run with TORCH_LOGS=perf_hints for the reason)"
     return f"cudagraph_skips 0, no sync in a compiled burst, first burst (compilation) {compile_seconds:.0f} s"
