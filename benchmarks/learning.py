@@ -43,14 +43,14 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
 from sb3_dsslac import DSSLAC, CostEvalCallback
-from sb3_dsslac.beliefs import episode_beliefs, mean_cost_probabilities, plot_beliefs
-from sb3_dsslac.envs import make_env
-from sb3_dsslac.evaluation import eval_policy_name
-from sb3_dsslac.plotting import RunResults, load_run, score_table, task_name
+from sb3_dsslac.app.beliefs import episode_beliefs, mean_cost_probabilities, plot_beliefs
+from sb3_dsslac.app.plotting import RunResults, load_run, score_table, task_name
+from sb3_dsslac.app.rollouts import evaluate
+from sb3_dsslac.app.runs import FINAL_MODEL, find_checkpoint, load_config, read_time_account
+from sb3_dsslac.common.envs import make_env
+from sb3_dsslac.common.evaluation import eval_policy_name
+from sb3_dsslac.common.timing import ACTIVITIES
 from sb3_dsslac.presets import preset_hyperparams
-from sb3_dsslac.rollouts import evaluate
-from sb3_dsslac.runs import FINAL_MODEL, find_checkpoint, load_config, read_time_account
-from sb3_dsslac.timing import ACTIVITIES
 
 
 class RecordMultiplier(BaseCallback):

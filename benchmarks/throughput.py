@@ -5,7 +5,7 @@ batch 64 and the thesis's networks) and at the small presets ``cpu`` (PointGoal1
 
 - for each update path (one update = one latent-model update + one actor-critic update, Algorithm 1): updates/s, ATen
   ops per update, those of them that are not views (the kernel launches on a GPU) and host syncs per update
-  (``sb3_dsslac.dispatch.DispatchCounter`` over 3 updates after the warm-up, the reads of Adam's step counters left
+  (``sb3_dsslac.engine.dispatch.DispatchCounter`` over 3 updates after the warm-up, the reads of Adam's step counters left
   out);
 - simulator and agent steps/s of the env alone;
 - agent steps/s of real training at the thesis shapes (bursts of ``--burst`` env steps and ``--burst`` updates);
@@ -42,9 +42,9 @@ from stable_baselines3.common.utils import set_random_seed
 
 import safety_envs  # noqa: F401  (registers the SafetyGym/* ids)
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.buffers import SequenceBatch
-from sb3_dsslac.critics import sample_taus
-from sb3_dsslac.dispatch import DispatchCounter, optimizer_step_tensors
+from sb3_dsslac.common.buffers import SequenceBatch
+from sb3_dsslac.engine.dispatch import DispatchCounter, optimizer_step_tensors
+from sb3_dsslac.nn.critics import sample_taus
 from sb3_dsslac.presets import preset_env_kwargs, preset_hyperparams
 
 ENV_ID = "SafetyGym/PointGoal1-v0"

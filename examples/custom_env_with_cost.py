@@ -13,8 +13,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_dsslac.runs import TrainConfig, train
-from sb3_dsslac.plotting import report
+from sb3_dsslac.app.plotting import report
+from sb3_dsslac.app.runs import TrainConfig, train
 
 
 class SpinCost(gym.Wrapper):

@@ -10,8 +10,8 @@ import argparse
 from pathlib import Path
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.rollouts import evaluate, format_episodes
-from sb3_dsslac.runs import find_run_config
+from sb3_dsslac.app.rollouts import evaluate, format_episodes
+from sb3_dsslac.app.runs import find_run_config
 
 parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
 parser.add_argument("model", help="a model saved in a run folder, e.g. runs/pointgoal1/model.zip")

@@ -16,9 +16,9 @@ import argparse
 import importlib.util
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.rollouts import evaluate, format_episodes
-from sb3_dsslac.runs import FINAL_MODEL, TrainConfig, train
-from sb3_dsslac.plotting import report
+from sb3_dsslac.app.plotting import report
+from sb3_dsslac.app.rollouts import evaluate, format_episodes
+from sb3_dsslac.app.runs import FINAL_MODEL, TrainConfig, train
 
 parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
 parser.add_argument("--out", default="runs/pointgoal1", help="run folder (must not hold a run yet)")

@@ -9,7 +9,7 @@ the study. Same as ``python -m sb3_dsslac tune --env SafetyGym/PointGoal1-v0 --p
 
 import argparse
 
-from sb3_dsslac.hpo import TuneSpec, summarize_study, tune
+from sb3_dsslac.app.hpo import TuneSpec, summarize_study, tune
 
 parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
 parser.add_argument("--storage", default="runs/tune_pointgoal1.log", help="journal file, sqlite:/// or postgresql:// URL")

@@ -1,8 +1,8 @@
-"""``python -m sb3_dsslac``: see ``sb3_dsslac.cli``."""
+"""``python -m sb3_dsslac``: see ``sb3_dsslac.app.cli``."""
 
 import sys
 
-from sb3_dsslac.cli import main
+from sb3_dsslac.app.cli import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,80 +1,34 @@
 """DS-SLAC: Distributional Safe Stochastic Latent Actor-Critic as a Stable-Baselines3 off-policy algorithm."""
 
-import inspect
 import io
 import math
 import pathlib
 import warnings
-from collections import deque
 from typing import Any, ClassVar, TypeVar
 
-import numpy as np
 import torch as th
-from gymnasium import spaces
-from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.save_util import recursive_getattr
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq, TrainFrequencyUnit
-from stable_baselines3.common.utils import safe_mean, update_learning_rate
-from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TrainFreq, TrainFrequencyUnit
+from stable_baselines3.common.utils import update_learning_rate
 
-from sb3_dsslac.allocator import keep_freed_memory
-from sb3_dsslac.buffers import SequenceReplayBuffer
-from sb3_dsslac.bursts import UpdateBursts, record_burst
-from sb3_dsslac.env_info import action_repeat_of, cost_from_info, episode_length_of
-from sb3_dsslac.gradient_step import GradientStep
-from sb3_dsslac.lagrange import LAGRANGE_RULES, CostBudget, inverse_softplus, with_lagrange_callback
-from sb3_dsslac.numerics import raise_if_action_not_finite, resolve_bf16, tf32_matmul
-from sb3_dsslac.policies import LatentPolicy
-from sb3_dsslac.timing import TimeAccount
-from sb3_dsslac.validation import check_arguments
+from sb3_dsslac.common.buffers import SequenceReplayBuffer
+from sb3_dsslac.common.env_info import action_repeat_of, episode_length_of
+from sb3_dsslac.common.filtered_rollouts import FilteredRollouts
+from sb3_dsslac.common.lagrange import CostBudget, inverse_softplus, with_lagrange_callback
+from sb3_dsslac.common.policies import LatentPolicy, merge_shared_keywords
+from sb3_dsslac.common.timing import TimeAccount
+from sb3_dsslac.common.validation import check_arguments, check_related_arguments, check_spaces
+from sb3_dsslac.engine.allocator import keep_freed_memory
+from sb3_dsslac.engine.bursts import UpdateBursts, record_burst
+from sb3_dsslac.engine.gradient_step import GradientStep, UpdateConfig
+from sb3_dsslac.nn.numerics import resolve_bf16, tf32_matmul
 
 SelfDSSLAC = TypeVar("SelfDSSLAC", bound="DSSLAC")
 
-# Keywords of both DSSLAC and LatentPolicy, with LatentPolicy's defaults (the code behind the thesis numbers)
-SHARED_POLICY_KEYWORDS: dict[str, Any] = {
-    name: inspect.signature(LatentPolicy).parameters[name].default
-    for name in ("image_noise", "cost_loss_weight", "cost_positive_weight", "latent_learning_rate", "cost_critic")
-}
 
-
-def _merge_shared_keywords(policy_kwargs: dict[str, Any], **given: Any) -> dict[str, Any]:
-    """
-    ``policy_kwargs`` with each of ``SHARED_POLICY_KEYWORDS`` set once: the value given to DSSLAC (None: not given),
-    else the one in ``policy_kwargs``, else the default. A ValueError names both when they are given and differ.
-    """
-    for name, default in SHARED_POLICY_KEYWORDS.items():
-        value = given[name]
-        if value is None:
-            policy_kwargs.setdefault(name, default)
-        elif name in policy_kwargs and policy_kwargs[name] != value:
-            raise ValueError(
-                f"{name}={value!r} and policy_kwargs={{{name!r}: {policy_kwargs[name]!r}}} disagree: give {name} once"
-            )
-        else:
-            policy_kwargs[name] = value
-    return policy_kwargs
-
-
-def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
-    """Raise a ValueError naming the fix for spaces DS-SLAC cannot handle."""
-    if not isinstance(action_space, spaces.Box):
-        raise ValueError(
-            f"DS-SLAC needs a continuous Box action space, got {action_space}. "
-            "Discrete-action envs need a different algorithm (or a wrapper mapping a Box to the discrete actions)."
-        )
-    if not isinstance(observation_space, spaces.Box) or len(observation_space.shape) not in (1, 3):
-        raise ValueError(
-            f"DS-SLAC encodes Box images (C, H, W) or flat Box vectors, got {observation_space}. "
-            "For safety_envs use obs_type='pixels' or obs_type='state'; "
-            "flatten or select Dict observations with a wrapper."
-        )
-
-
-class DSSLAC(CostBudget, OffPolicyAlgorithm):
+class DSSLAC(CostBudget, FilteredRollouts):
     """
     Distributional Safe Stochastic Latent Actor-Critic (Miranda, 2023), built on Safe SLAC (Hogewind et al., 2023).
 
@@ -84,8 +38,8 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
 
     Units: one timestep is one ``env.step`` (an agent step, ``action_repeat`` simulator steps). Costs come from
     ``info["cost"]``. Defaults are the thesis's Table 5.2 and the code behind its numbers. The keywords of
-    ``SHARED_POLICY_KEYWORDS`` are also ``LatentPolicy``'s: None takes ``policy_kwargs``' value, else ``LatentPolicy``'s
-    default; given both here and in ``policy_kwargs``, they must agree, else a ValueError.
+    ``SHARED_POLICY_KEYWORDS`` (``common/policies.py``) are also ``LatentPolicy``'s: None takes ``policy_kwargs``' value,
+    else ``LatentPolicy``'s default; given both here and in ``policy_kwargs``, they must agree, else a ValueError.
 
     :param policy: "LatentPolicy" or the class
     :param env: the env or its registered id; must report ``info["cost"]`` every step
@@ -100,7 +54,7 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         learn from: 1 (the thesis's, the last) to ``sequence_length`` (all: that many times the samples per update). The
         IQN cost critic then runs on ``batch_size * actor_critic_transitions * n_quantiles`` rows: with 4 transitions,
         ``n_quantiles`` / 4 keeps the update's cost (at ``cpu_pixels32_bounded``'s sizes, 4 transitions ran at 0.74x the
-        updates/s of 1, and 4 with 8 quantiles at 1.01x; ``benchmarks/compare_trees.py``, one thread, AMD EPYC)
+        updates/s of 1, and 4 with 8 quantiles at 1.01x; ``benchmarks/tools/compare_trees.py``, one thread, AMD EPYC)
     :param tau: Polyak factor of the target critics
     :param gamma: discount of the reward
     :param cost_gamma: discount of the cost
@@ -219,6 +173,7 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         _init_setup_model: bool = True,
     ):
         check_arguments(DSSLAC.__init__, locals())  # types and ranges that SB3 would leave to the first update
+        check_related_arguments(locals())
         super().__init__(
             policy,
             env,
@@ -247,7 +202,7 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         self.actor_critic_transitions = actor_critic_transitions
         self.cost_gamma = cost_gamma
         # A copy: the caller's dict is not ours to fill, and may be shared by several models
-        self.policy_kwargs = _merge_shared_keywords(
+        self.policy_kwargs = merge_shared_keywords(
             dict(self.policy_kwargs),
             image_noise=image_noise,
             cost_loss_weight=cost_loss_weight,
@@ -263,9 +218,7 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         self.episode_length = episode_length
         self.lagrange = lagrange
         self.lagrange_init = lagrange_init
-        # The multiplier's raw parameter, on the host whatever the device: the training envs' costs move it at every agent
-        # step (LagrangeCallback), a burst of updates reads it once (and the "critic" rule writes it once). Saved with the
-        # other attributes, so that a load on any device (even "meta") finds it here
+        # On the host whatever the device, read once per burst; saved with the attributes, so any load device finds it
         self.lagrange_raw = th.tensor(inverse_softplus(lagrange_init), dtype=th.float64)
         self.lagrange_learning_rate = lagrange_learning_rate
         self.lr_decay_milestone = lr_decay_milestone
@@ -285,39 +238,12 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         self.latent_pretrained = False
         self.pid_state: list[float | None] = [0.0, None]  # integral, smoothed episode cost (None before the first)
         self.action_repeat = 1
-        self.total_cost = 0.0
         self.time_account = TimeAccount()  # wall seconds by activity, logged as time/<activity>_s
-        # Rollout state, not saved: the training envs' filter state and running episode costs
-        self._last_filter_state: tuple[th.Tensor, th.Tensor] | None = None
-        self._episode_costs = np.zeros(0)
-        self.ep_cost_buffer: deque[float] = deque(maxlen=stats_window_size)
-
+        self._init_rollout_state()
         if self.env is not None:
-            _check_spaces(self.observation_space, self.action_space)
+            check_spaces(self.observation_space, self.action_space)
             self.action_repeat = action_repeat_of(self.env)
-            if self.episode_length is None:
-                self.episode_length = episode_length_of(self.env)
-            if self.episode_length is None:
-                raise ValueError(
-                    "Cannot tell how many agent steps an episode of this env has (it has no time limit): "
-                    "pass episode_length=<agent steps per episode> so that cost_limit can be spread over the steps."
-                )
-        if not 1 <= actor_critic_transitions <= sequence_length:
-            raise ValueError(
-                f"actor_critic_transitions must be in [1, sequence_length={sequence_length}], got {actor_critic_transitions}"
-            )
-        if not 0.0 < cvar_risk_level <= 1.0:
-            raise ValueError(f"cvar_risk_level must be in (0, 1], got {cvar_risk_level}")
-        if cost_target is not None and not 0.0 <= cost_target <= cost_limit:
-            raise ValueError(f"cost_target must be in [0, cost_limit={cost_limit:g}] or None, got {cost_target}")
-        if lr_decay_milestone is not None and lr_decay_milestone < 0:
-            raise ValueError(f"lr_decay_milestone must be a number of agent steps >= 0 or None, got {lr_decay_milestone}")
-        if lr_decay_factor <= 0.0:
-            raise ValueError(f"lr_decay_factor must be > 0, got {lr_decay_factor}")
-        if not 0.0 <= pid_cost_ema < 1.0:
-            raise ValueError(f"pid_cost_ema must be in [0, 1), got {pid_cost_ema}")
-        if lagrange not in LAGRANGE_RULES:
-            raise ValueError(f"Unknown lagrange rule {lagrange!r}; choose one of {', '.join(LAGRANGE_RULES)}")
+            self.episode_length = episode_length or episode_length_of(self.env, required=True)
         if self.episode_length is not None:
             self.policy_kwargs.setdefault("cost_critic_initial_value", self.discounted_cost_budget)
         if _init_setup_model:
@@ -354,17 +280,23 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
             self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1), fused=True)
         else:
             self.ent_coef_tensor = ent_coef_tensor = th.tensor(float(self.ent_coef), device=self.device)
+        optimizers = [recursive_getattr(self, name) for name in self._optimizer_names()]
+        config = self.update_config(self.batch_size)
         step = GradientStep(
-            self.policy,
-            [recursive_getattr(self, name) for name in self._optimizer_names()],
-            log_ent_coef,
-            self.ent_coef_optimizer,
-            ent_coef_tensor,
+            self.policy, optimizers, log_ent_coef, self.ent_coef_optimizer, ent_coef_tensor, config, self.device
+        )
+        # The update engine: rebuilt here, never saved
+        self.updates = UpdateBursts(step, self.lagrange_raw, self.compile_updates, self.time_account)
+
+    def update_config(self, batch_size: int) -> UpdateConfig:
+        """What the gradient step reads of this model's hyperparameters, now (``batch_size``: sequences per update)."""
+        assert isinstance(self.target_entropy, float)
+        return UpdateConfig(
             target_entropy=self.target_entropy,
             gamma=self.gamma,
             cost_gamma=self.cost_gamma,
             tau=self.tau,
-            batch_size=self.batch_size,
+            batch_size=batch_size,
             latent_batch_size=self.latent_batch_size,
             actor_critic_transitions=self.actor_critic_transitions,
             share_latent_batch=self.share_latent_batch,
@@ -374,115 +306,16 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
             actor_max_grad_norm=self.actor_max_grad_norm,
             critic_lagrange_budget=self.critic_cost_budget if self.lagrange == "critic" else None,
             bf16=resolve_bf16(self.bf16, self.device),
-            device=self.device,
         )
-        # The update engine: rebuilt here, never saved
-        self.updates = UpdateBursts(step, self.lagrange_raw, self.compile_updates, self.time_account)
 
     def _optimizer_names(self) -> list[str]:
         """Every optimizer, by the attribute path it is saved under: the policy's four, then the entropy coefficient's."""
         names = [f"policy.{network}_optimizer" for network in ("latent", "actor", "critic", "cost_critic")]
         return [*names, "ent_coef_optimizer"] if self.ent_coef_optimizer is not None else names
 
-    def _setup_learn(
-        self,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        reset_num_timesteps: bool = True,
-        tb_log_name: str = "run",
-        progress_bar: bool = False,
-    ) -> tuple[int, BaseCallback]:
-        envs_reset = reset_num_timesteps or self._last_obs is None
-        if reset_num_timesteps:
-            self.total_cost = 0.0
-            self.ep_cost_buffer = deque(maxlen=self._stats_window_size)
-        result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
-        assert self.env is not None
-        if envs_reset or self._last_filter_state is None or len(self._episode_costs) != self.env.num_envs:
-            # Fresh episodes (or a run resumed without its rollout state): every filter restarts at the next frame
-            self._last_filter_state = None
-            self._last_episode_starts = np.ones(self.env.num_envs, dtype=bool)
-            self._episode_costs = np.zeros(self.env.num_envs)
-        return result
-
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
         """Attach the on-policy ``LagrangeCallback`` unless the caller already passed one."""
         return super()._init_callback(with_lagrange_callback(callback), progress_bar)
-
-    def _sample_action(
-        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """
-        Advance the training envs' latent filter on the last observation and act: ``tanh(N(0, 2^2))`` random actions
-        during the warm-up (they advance the filter too), the stochastic actor afterwards. No action noise.
-        """
-        assert self._last_obs is not None and isinstance(self._last_obs, np.ndarray)
-        if self._last_filter_state is None:
-            self._last_filter_state = self.policy.initial_state(n_envs)
-        observation = th.as_tensor(self._last_obs, device=self.device)
-        episode_start = th.as_tensor(self._last_episode_starts, dtype=th.bool, device=self.device)
-        self.policy.set_training_mode(False)
-        with th.inference_mode():
-            z, z2 = self.policy.belief_step(observation, *self._last_filter_state, episode_start, deterministic=False)
-            if self.num_timesteps < learning_starts:
-                scaled_action = th.tanh(2.0 * th.randn(n_envs, self.policy.action_dim, device=self.device))
-            else:
-                scaled_action = self.policy.actor(z)
-        self._last_filter_state = (z2, scaled_action)
-        buffer_action = scaled_action.cpu().numpy()
-        raise_if_action_not_finite(buffer_action, self.num_timesteps, self._n_updates)
-        return self.policy.unscale_action(buffer_action), buffer_action
-
-    def collect_rollouts(
-        self,
-        env: VecEnv,
-        callback: BaseCallback,
-        train_freq: TrainFreq,
-        replay_buffer: ReplayBuffer,
-        action_noise: ActionNoise | None = None,
-        learning_starts: int = 0,
-        log_interval: int | None = None,
-    ) -> RolloutReturn:
-        """SB3's ``collect_rollouts``, its time counted as acting (callbacks that measure their own excepted)."""
-        with self.time_account.measure("acting"):
-            return super().collect_rollouts(
-                env, callback, train_freq, replay_buffer, action_noise, learning_starts, log_interval
-            )
-
-    def _store_transition(
-        self,
-        replay_buffer: ReplayBuffer,
-        buffer_action: np.ndarray,
-        new_obs: np.ndarray | dict[str, np.ndarray],
-        reward: np.ndarray,
-        dones: np.ndarray,
-        infos: list[dict[str, Any]],
-    ) -> None:
-        costs = np.array([cost_from_info(info) for info in infos])
-        self._episode_costs += costs
-        self.total_cost += float(costs.sum())
-        for idx in np.flatnonzero(dones):
-            self.ep_cost_buffer.append(float(self._episode_costs[idx]))
-            self._episode_costs[idx] = 0.0
-        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
-        self._last_episode_starts = np.array(dones, dtype=bool)
-
-    def dump_logs(self) -> None:
-        """SB3's logs, with the episode costs, the simulator steps and the time account; its time counted as logging."""
-        with self.time_account.measure("logging"):
-            for name, seconds in self.time_account.summary().items():
-                self.logger.record(f"time/{name}_s", round(seconds, 1))
-            sim_steps = self.num_timesteps * self.action_repeat
-            if len(self.ep_cost_buffer) > 0:
-                self.logger.record("rollout/ep_cost_mean", safe_mean(list(self.ep_cost_buffer)))
-            self.logger.record("rollout/cost_rate", self.total_cost / max(sim_steps, 1))
-            self.logger.record("time/sim_steps", sim_steps)
-            if hasattr(super(), "dump_logs"):
-                super().dump_logs()
-            else:  # SB3 before 2.6 names it _dump_logs
-                super()._dump_logs()
-
-    _dump_logs = dump_logs  # the name SB3 before 2.6 calls
 
     def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
         """
@@ -507,10 +340,10 @@ class DSSLAC(CostBudget, OffPolicyAlgorithm):
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.updates.step.optimizers)
         # Read at every burst, as SAC reads them at every update: a changed model.gamma or model.tau takes effect
-        # (a compiled update recompiles once for the new values)
-        step = self.updates.step
-        step.gamma, step.cost_gamma, step.tau = self.gamma, self.cost_gamma, self.tau
-        step.batch_size, step.latent_batch_size = batch_size, self.latent_batch_size
+        # (a compiled update recompiles once for the new values; the same values keep the same config and graphs)
+        config = self.update_config(batch_size)
+        if config != self.updates.step.config:
+            self.updates.step.config = config
         if not self.latent_pretrained:
             with self.time_account.measure("latent_pretraining"):
                 self._pretrain_latent()

@@ -1,9 +1,12 @@
 """
-Named hyperparameter sets: ``thesis`` (Table 5.2), ``thesis_fast`` (the same with the fast update options),
-``cpu`` (a pixel run end to end in a few minutes on a laptop CPU), ``cpu_learning`` (vector observations, learns
-PointGoal1 within about 30 minutes on a 2-core CPU), ``cpu_pixels`` (64x64 pixels, about 128 CPU minutes per
-300k simulator steps; learns the cost, not yet the reward) and ``cpu_pixels32`` (32x32 pixels at action repeat 4,
-about 45 CPU minutes; evaluation reward 6.9 at cost 17.2 by 300k simulator steps, mean of 3 seeds).
+Named hyperparameter sets of ``DSSLAC`` (``PRESETS``) and the env keywords some were tuned with (``PRESET_ENV_KWARGS``):
+
+- ``thesis``: Table 5.2 of the thesis, with the reference code's step-size halving; ``thesis_fast`` adds the fast update
+  options (a GPU, or a CPU that computes bfloat16 natively);
+- ``cpu``: small networks, a pixel run end to end in a few minutes on a laptop CPU; learns little;
+- ``cpu_learning``: vector observations; learns PointGoal1 in about 30 minutes on a 2-core CPU;
+- ``cpu_pixels`` (64x64 frames) and ``cpu_pixels32`` / ``cpu_pixels32_bounded`` (32x32 frames at action repeat 4): the
+  thesis's pixel pipeline on a CPU budget. What each reaches, per task, is in docs/pixel_learning.md.
 """
 
 from typing import Any
@@ -13,20 +16,16 @@ from typing import Any
 # repeat 2 that is 30_000 + 400 * 1000 / 2 = 230_000 agent steps (460k simulator steps)
 THESIS_LR_DECAY_MILESTONE = 30_000 + 400 * 1000 // 2
 
-# The pixel learning benchmark's preset: the thesis's 64x64 frames and update path (conv encoder and decoder, latent
-# filter, IQN cost critic, multiplier) on a CPU budget. Departures from Table 5.2, each measured (docs/pixel_learning.md):
+# The thesis's 64x64 frames and update path (conv encoder and decoder, latent filter, IQN cost critic, multiplier) on a
+# CPU budget. Departures from Table 5.2 (docs/pixel_learning.md says what each changed):
 # - convolution widths (8, 16, 32, 64), a quarter of the thesis's: about 4x the updates/s; the scene has few textures;
-# - cpu_learning's small latent and networks, sequences of 4, batches of 16 (latent) and 32: sequences of 10 cost twice
-#   the minutes and learned no more reward;
+# - small latent and networks, sequences of 4, batches of 16 (latent) and 32: sequences of 10 cost twice the minutes and
+#   learned no more reward;
 # - 32 updates every 80 agent steps, compiled; a 10k-step warm-up and 5k latent pre-training updates;
 # - likelihood variance 0.1 and latent step size 1e-3: at 0.4 and 1e-4 the reconstructions held neither the hazards nor
 #   the goal after 25k agent steps;
 # - multiplier step size 1e-3: at 2e-4 it barely moved in 300k simulator steps while the cost stayed at 60-70.
-# By 300k simulator steps it keeps the cost under the budget but learns no reward; cpu_pixels32 learns it. On a 2-core
-# Intel Xeon (AVX512) its compiled update runs channels-last at 22.6 updates/s, 1.50x the speed issue's reference
-# (07cfb16) over 20 rounds, and a 30k-simulator-step run costs 1.38-1.40x less CPU; with that CPU held to AVX2, 17.6
-# updates/s, 1.30x. With the first layer's output columns paired (AVX512), 1.56x in 8 rounds on a slower host of that
-# kind (18.65 against 11.92 updates/s; docs/performance.md)
+# By 300k simulator steps it keeps the cost under the budget but learns no reward; cpu_pixels32 does
 CPU_PIXELS: dict[str, Any] = {
     "image_noise": 0.1,
     "latent_learning_rate": 1e-3,
@@ -54,11 +53,7 @@ CPU_PIXELS: dict[str, Any] = {
 # cpu_pixels on 32x32 frames at action repeat 4 (PRESET_ENV_KWARGS), 96 updates every 80 agent steps (84k by 300k
 # simulator steps), the multiplier aiming at 20 per episode (cost_target) under the budget of 25. At 4 simulator steps per
 # frame a hazard just ahead has been in the belief's last 4 frames before 83% of the hazard costs (74% at 2); the margin
-# keeps single evaluations under the budget. By 300k simulator steps: reward 6.89, cost 17.2 (3 seeds), in 44 CPU minutes
-# per seed on an AMD EPYC (docs/pixel_learning.md). On a 2-core Intel Xeon (AVX512) a 300k run took 34.1 CPU minutes,
-# beside 39.9 for the code of the speed issue's reference (07cfb16) in the same run (benchmarks/results/speed_300k_intel_xeon);
-# with channels-last convolutions and frames and paired columns, 42.1 against 47.8 on a slower host (1.14x;
-# benchmarks/results/speed_300k_intel_xeon_2)
+# keeps single evaluations under the budget. About 45-60 CPU minutes per 300k simulator steps on a 2-core CPU
 CPU_PIXELS32: dict[str, Any] = {**CPU_PIXELS, "learning_starts": 5_000, "gradient_steps": 96, "cost_target": 20.0}
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -118,14 +113,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     "cpu_pixels": CPU_PIXELS,
     "cpu_pixels32": CPU_PIXELS32,
     # cpu_pixels32 with bounded latents: every latent Gaussian's std in [0.1, 2] and |mean| <= 10 (the thesis: std >=
-    # 1e-5, no other bound). cpu_pixels32's latent model spikes past 120k updates (per-update KL 1e11 to 1e23), its prior
-    # std at the 1e-5 floor; with the floor at 0.1 alone it still spiked twice in 11k updates past 54k (KL 9e8, |z| 1.6e7):
-    # the latents' scale drifts up unchecked (largest |z| 25 -> 90 over 60k updates, prior stds up to 23), so a burst of
-    # Adam steps can send the recurrence off. With both bounds a latent cannot leave mean_bound + max_std * |noise|.
-    # Seeds 0-2 to 600k: largest |z| 20, reconstructions under 8.7, burst-mean KLs at most 212, single-update KLs up to
-    # 3.3e4 (bounded surprises, 20 logged rows in all), reward 7.41 at cost 18.5 over the last three evaluations (6.30 at
-    # 19.4 by 300k), 95-105 CPU minutes per seed. CarGoal1 with the same settings learns (15.35 at 15.5 by 300k), PointGoal2
-    # learns the cost and no reward (-0.12 at 18.0): docs/pixel_learning.md
+    # 1e-5, no other bound). Without the bounds the latents' scale drifts up unchecked and, past about 100k updates, a
+    # burst of Adam steps can send the recurrence off (per-update KL 1e11 and more); with them a latent cannot leave
+    # mean_bound + max_std * |noise|. What it reaches per task: docs/pixel_learning.md
     "cpu_pixels32_bounded": {
         **CPU_PIXELS32,
         "policy_kwargs": {

@@ -1,6 +1,7 @@
 """allocator.py: glibc's malloc keeps the updates' freed memory for reuse."""
 
-from sb3_dsslac import allocator, dsslac
+from sb3_dsslac import dsslac
+from sb3_dsslac.engine import allocator
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import small_model
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_dsslac.beliefs import _pick_steps, episode_beliefs, mean_cost_probabilities, plot_beliefs
-from sb3_dsslac.cli import main
-from sb3_dsslac.rollouts import evaluate
+from sb3_dsslac.app.beliefs import _pick_steps, episode_beliefs, mean_cost_probabilities, plot_beliefs
+from sb3_dsslac.app.cli import main
+from sb3_dsslac.app.rollouts import evaluate
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_cli import TINY_ENV, run_train
 from tests.test_dsslac import SMALL_POLICY, small_model

@@ -12,7 +12,7 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_dsslac.buffers import SequenceBatch, SequenceReplayBuffer
+from sb3_dsslac.common.buffers import SequenceBatch, SequenceReplayBuffer
 
 VEC_SPACE = spaces.Box(-np.inf, np.inf, shape=(3,), dtype=np.float32)
 ACT_SPACE = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)

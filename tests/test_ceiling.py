@@ -12,7 +12,7 @@ FAR = {"hazards_xy": np.full((8, 2), 3.3), "vases_xy": np.array([[3.3, -3.3]])} 
 @pytest.fixture
 def benchmarks(monkeypatch):
     monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools" / "diagnostics"))
 
 
 @pytest.fixture

@@ -9,9 +9,9 @@ import torch as th
 import yaml
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.cli import main
-from sb3_dsslac.rollouts import side_by_side
-from sb3_dsslac.runs import TrainConfig, find_checkpoint, load_config, parse_hyperparams, train
+from sb3_dsslac.app.cli import main
+from sb3_dsslac.app.rollouts import side_by_side
+from sb3_dsslac.app.runs import TrainConfig, find_checkpoint, load_config, parse_hyperparams, train
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import small_model
 
@@ -153,16 +153,16 @@ def test_plot_writes_curves_and_the_score_table(trained_run: Path, tmp_path: Pat
 
 
 def test_train_evaluates_with_the_thesis_protocol_unless_told(tmp_path: Path, monkeypatch, capsys) -> None:
-    import sb3_dsslac.evaluation
+    import sb3_dsslac.common.evaluation
 
     asked = []
-    original = sb3_dsslac.evaluation.evaluate_policy_with_cost
+    original = sb3_dsslac.common.evaluation.evaluate_policy_with_cost
 
     def spy(model, env, n_eval_episodes, deterministic):
         asked.append(deterministic)
         return original(model, env, n_eval_episodes, deterministic)
 
-    monkeypatch.setattr(sb3_dsslac.evaluation, "evaluate_policy_with_cost", spy)
+    monkeypatch.setattr(sb3_dsslac.common.evaluation, "evaluate_policy_with_cost", spy)
     for name, flags, deterministic in (
         ("default", [], False),
         ("old_flag", ["--stochastic-eval"], False),
@@ -187,12 +187,14 @@ def test_train_evaluates_with_the_thesis_protocol_unless_told(tmp_path: Path, mo
 
 
 def test_evaluate_says_which_policy(trained_run: Path, capsys, monkeypatch) -> None:
-    import sb3_dsslac.cli
+    import sb3_dsslac.app.cli
 
     used = []
-    original = sb3_dsslac.cli.evaluate
+    original = sb3_dsslac.app.cli.evaluate
     monkeypatch.setattr(
-        sb3_dsslac.cli, "evaluate", lambda *args, **kwargs: used.append(kwargs["deterministic"]) or original(*args, **kwargs)
+        sb3_dsslac.app.cli,
+        "evaluate",
+        lambda *args, **kwargs: used.append(kwargs["deterministic"]) or original(*args, **kwargs),
     )
     for flags, deterministic in (([], False), (["--deterministic"], True), (["--stochastic"], False)):
         assert main(["evaluate", str(trained_run / "model.zip"), "--episodes", "1", *flags]) == 0

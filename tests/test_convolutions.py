@@ -4,23 +4,12 @@ import pytest
 import torch
 from torch import nn
 
-from sb3_dsslac import convolutions
-from sb3_dsslac.convolutions import (
-    ColumnPairedConv2d,
+from sb3_dsslac.nn.convolutions import (
     DenseConv2d,
     DenseConvTranspose2d,
     SubpixelConvTranspose2d,
-    column_paired_conv2d,
-    pairs_columns,
 )
-from sb3_dsslac.latent import LatentModel
-
-
-@pytest.fixture(params=[False, True], ids=["plain", "paired"])
-def paired(request, monkeypatch) -> bool:
-    """Column pairing on or off, whatever this CPU's instruction set (the paired form is a plain convolution too)."""
-    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", request.param)
-    return request.param
+from sb3_dsslac.nn.latent import LatentModel
 
 
 def _same_outputs_and_gradients(
@@ -73,7 +62,7 @@ def test_dense_layers_keep_a_channels_last_model_channels_last():
 )
 @pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
 def test_subpixel_conv_transpose2d_is_the_transposed_convolution(
-    channels, kernel, stride, padding, output_padding, size, layout, paired
+    channels, kernel, stride, padding, output_padding, size, layout
 ):
     layers = [
         cls(*channels, kernel, stride=stride, padding=padding, output_padding=output_padding)
@@ -81,69 +70,6 @@ def test_subpixel_conv_transpose2d_is_the_transposed_convolution(
     ]
     out = _same_outputs_and_gradients(*layers, (3, channels[0], size, size), layout)
     assert out.is_contiguous(memory_format=layout)  # the layout of the model's other layers: no copy to or from it
-
-
-@pytest.mark.parametrize(
-    "channels, kernel, stride, padding, size",
-    [
-        ((3, 8), 5, 2, 2, 64),  # the encoder's first layer, and the decoder's output layer's gradients, at 64x64
-        ((3, 8), 5, 2, 2, 32),  # at 32x32
-        ((2, 4), 3, 1, 1, 6),
-        ((5, 3), 4, 3, 0, 13),
-    ],
-)
-def test_column_paired_conv2d_is_the_convolution(channels, kernel, stride, padding, size, monkeypatch):
-    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", True)
-    x = torch.empty(1, channels[0], size, size).contiguous(memory_format=torch.channels_last)
-    assert pairs_columns(x, channels[1], kernel, stride, padding)
-    layers = [cls(*channels, kernel, stride=stride, padding=padding) for cls in (nn.Conv2d, ColumnPairedConv2d)]
-    out = _same_outputs_and_gradients(*layers, (3, channels[0], size, size), torch.channels_last)
-    assert out.is_contiguous(memory_format=torch.channels_last) and not out.is_contiguous()
-
-
-def test_only_narrow_channels_last_convolutions_of_even_output_width_pair_their_columns(monkeypatch):
-    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", True)
-    frames = torch.empty(2, 3, 64, 64)
-    assert pairs_columns(frames.contiguous(memory_format=torch.channels_last), 8, 5, 2, 2)
-    assert not pairs_columns(frames, 8, 5, 2, 2)  # NCHW: oneDNN's blocked kernels, not the NHWC ones pairing feeds
-    assert not pairs_columns(frames.contiguous(memory_format=torch.channels_last), 16, 5, 2, 2)  # a full register
-    assert not pairs_columns(torch.empty(2, 3, 61, 61).contiguous(memory_format=torch.channels_last), 8, 5, 2, 2)  # 31
-    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", False)  # not an AVX512 CPU
-    assert not pairs_columns(frames.contiguous(memory_format=torch.channels_last), 8, 5, 2, 2)
-
-
-def test_a_paired_convolution_falls_back_where_its_columns_do_not_pair(monkeypatch):
-    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", True)
-    calls = []
-    monkeypatch.setattr(convolutions, "column_paired_conv2d", lambda *args: calls.append(args))
-    for shape, layout in (((2, 3, 61, 61), torch.channels_last), ((2, 3, 64, 64), torch.contiguous_format)):
-        _same_outputs_and_gradients(nn.Conv2d(3, 8, 5, 2, 2), ColumnPairedConv2d(3, 8, 5, 2, 2), shape, layout)
-    _same_outputs_and_gradients(
-        nn.Conv2d(3, 8, 5, 2, 2, dilation=2),
-        ColumnPairedConv2d(3, 8, 5, 2, 2, dilation=2),
-        (2, 3, 64, 64),
-        torch.channels_last,
-    )
-    assert calls == []
-
-
-def test_column_paired_conv2d_compiles_to_the_same_numbers(monkeypatch):
-    """Inside the compiled update: the paired kernel built, the convolution run and its output viewed in one graph."""
-    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", True)
-    layer = ColumnPairedConv2d(3, 8, 5, stride=2, padding=2).to(memory_format=torch.channels_last)
-    x = torch.rand(2, 3, 32, 32).contiguous(memory_format=torch.channels_last)
-
-    def gradients(x: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        return torch.autograd.grad(layer(x).square().sum(), list(layer.parameters()))
-
-    with torch._dynamo.config.patch(trace_autograd_ops=True):
-        compiled = torch.compile(gradients, fullgraph=True)(x)
-    want = torch.autograd.grad(
-        column_paired_conv2d(x, layer.weight, layer.bias, (2, 2), (2, 2)).square().sum(), [layer.weight]
-    )
-    plain = torch.autograd.grad(nn.functional.conv2d(x, layer.weight, layer.bias, 2, 2).square().sum(), [layer.weight])
-    torch.testing.assert_close(compiled[0], want[0], atol=1e-4, rtol=1e-4)
-    torch.testing.assert_close(compiled[0], plain[0], atol=1e-4, rtol=1e-4)
 
 
 def test_subpixel_conv_transpose2d_compiles_to_the_same_numbers():
@@ -191,13 +117,12 @@ def test_latent_model_loads_the_state_dict_of_plain_convolutions(size):
 
 
 @pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
-def test_subpixel_conv_transpose2d_gradients_compile_to_the_same_numbers(layout, paired):
+def test_subpixel_conv_transpose2d_gradients_compile_to_the_same_numbers(layout):
     """The update compiles its backward pass too (``trace_autograd_ops``): the layer's gradients inside the graph."""
     reference = nn.ConvTranspose2d(8, 3, 5, stride=2, padding=2, output_padding=1)
     fast = SubpixelConvTranspose2d(8, 3, 5, stride=2, padding=2, output_padding=1).to(memory_format=layout)
     fast.load_state_dict(reference.state_dict())
     x = torch.randn(2, 8, 16, 16).contiguous(memory_format=layout).requires_grad_()
-    torch._dynamo.reset()  # the backward reads PAIR_NARROW_OUTPUTS where dynamo sets no guard: a graph of each setting
 
     def gradients(layer: nn.Module) -> tuple[torch.Tensor, ...]:
         return torch.autograd.grad(layer(x).square().sum(), [x, *layer.parameters()])
@@ -210,7 +135,7 @@ def test_subpixel_conv_transpose2d_gradients_compile_to_the_same_numbers(layout,
 
 @pytest.mark.parametrize("channels_last", [False, True])
 @pytest.mark.parametrize("bias", [False, True])
-def test_subpixel_op_passes_torch_library_checks(channels_last: bool, bias: bool, paired: bool):
+def test_subpixel_op_passes_torch_library_checks(channels_last: bool, bias: bool):
     """The custom op's fake tensor (shapes and strides), autograd registration and schema agree with what it computes."""
     layer = SubpixelConvTranspose2d(8, 3, 5, stride=2, padding=2, output_padding=1, bias=bias)
     x = torch.randn(2, 8, 6, 6, requires_grad=True)

@@ -3,7 +3,7 @@
 import pytest
 import torch as th
 
-from sb3_dsslac.dispatch import DispatchCounter, optimizer_step_tensors
+from sb3_dsslac.engine.dispatch import DispatchCounter, optimizer_step_tensors
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import SMALL_POLICY, small_model
 

@@ -1,5 +1,7 @@
 """DSSLAC on tiny envs: learning loop, logging, filter state, save/load and bad input."""
 
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -10,8 +12,10 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
 
 from sb3_dsslac import DSSLAC, LagrangeCallback, LatentPolicy, SequenceReplayBuffer
-from sb3_dsslac.bursts import record_burst
+from sb3_dsslac.engine.bursts import record_burst
 from tests.synthetic_envs import HazardPointEnv
+
+DATA = Path(__file__).parent / "data"
 
 SMALL_POLICY = dict(z1_dim=4, z2_dim=8, feature_dim=16, hidden_units=(32, 32), n_cosines=8, cost_critic_hidden_dim=32)
 SMALL = dict(
@@ -86,7 +90,7 @@ def test_discount_polyak_factor_and_batch_sizes_changed_on_the_model_reach_the_u
     weights, targets = [p.clone() for p in critic.parameters()], [p.clone() for p in target.parameters()]
     model.learn(10, reset_num_timesteps=False)  # one burst
     step = model.updates.step
-    assert (step.gamma, step.tau, step.batch_size, step.latent_batch_size) == (0.5, 0.0, 5, 3)
+    assert (step.config.gamma, step.config.tau, step.config.batch_size, step.config.latent_batch_size) == (0.5, 0.0, 5, 3)
     assert any(not th.equal(p, q) for p, q in zip(critic.parameters(), weights, strict=True))
     assert all(th.equal(p, q) for p, q in zip(target.parameters(), targets, strict=True))  # tau 0: targets stay
 
@@ -218,6 +222,22 @@ def test_save_load_round_trip(tmp_path) -> None:
             assert th.equal(saved["state"][key]["exp_avg"], restored["state"][key]["exp_avg"])
     steps = [m.ent_coef_optimizer.state_dict()["state"][0]["step"] for m in (model, loaded)]
     assert steps[0] == steps[1] > 0
+
+
+def test_a_model_and_buffer_saved_before_the_package_had_folders_load_and_train_on() -> None:
+    """Saved by the flat layout, whose pickles name ``sb3_dsslac.policies``, ``.buffers`` and ``.timing``."""
+    expected = np.load(DATA / "dsslac_flat_layout_predictions.npz")
+    model = DSSLAC.load(DATA / "dsslac_flat_layout.zip", env=HazardPointEnv(obs_type="pixels"))
+    state = (expected["z2"], np.zeros((3, 2), np.float32))
+    actions, next_state = model.predict(expected["obs"], state=state, episode_start=expected["starts"], deterministic=True)
+    np.testing.assert_allclose(actions, expected["actions"], atol=1e-5)
+    np.testing.assert_allclose(next_state[0], expected["z2_next"], atol=1e-5)
+    assert model.lagrange_raw.item() == pytest.approx(0.7) and model.time_account.summary()
+
+    model.load_replay_buffer(DATA / "dsslac_flat_layout_buffer.pkl")
+    assert isinstance(model.replay_buffer, SequenceReplayBuffer) and model.replay_buffer.size() > 0
+    model.learn(20, reset_num_timesteps=False)
+    assert model.num_timesteps == 80
 
 
 def test_replay_buffer_save_load(tmp_path) -> None:

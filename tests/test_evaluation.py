@@ -4,7 +4,7 @@ import numpy as np
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_dsslac.evaluation import CostEvalCallback, evaluate_policy_with_cost
+from sb3_dsslac.common.evaluation import CostEvalCallback, evaluate_policy_with_cost
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import small_model
 

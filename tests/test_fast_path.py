@@ -9,11 +9,12 @@ import pytest
 import torch as th
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_dsslac import DSSLAC, convolutions, numerics
-from sb3_dsslac.bursts import split_windows
-from sb3_dsslac import latent as latent_module
-from sb3_dsslac.dispatch import DispatchCounter, optimizer_step_tensors
-from sb3_dsslac.latent import LatentModel
+from sb3_dsslac import DSSLAC
+from sb3_dsslac.engine.bursts import split_windows
+from sb3_dsslac.engine.dispatch import DispatchCounter, optimizer_step_tensors
+from sb3_dsslac.nn import numerics
+from sb3_dsslac.nn import latent as latent_module
+from sb3_dsslac.nn.latent import LatentModel
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import SMALL, SMALL_POLICY, small_model
 
@@ -180,9 +181,8 @@ LATENT_STATISTICS = {
 def test_compiled_update_matches_eager(monkeypatch) -> None:
     # Minutes on 2 cores with a cold Inductor cache (17 s with a warm one): torch.compile builds the whole gradient step
     # and the burst's last actor-critic step with Inductor's C++ kernels, whatever the networks' sizes. The cpu_pixels
-    # presets' narrow first layer, channels-last and column-paired (as on an AVX512 CPU), whatever this CPU
+    # presets' narrow first layer, channels-last (as on an x86 CPU), whatever this CPU
     monkeypatch.setattr(latent_module, "channels_last_is_faster", lambda widths, device: True)
-    monkeypatch.setattr(convolutions, "PAIR_NARROW_OUTPUTS", True)
     eager, compiled = warmed_up_pair({"image_channels": (8, 8, 16, 16)}, compile_updates=True)
     assert compiled.policy.latent.channels_last
     indices = eager.replay_buffer.sample_indices(3, eager.latent_batch_size + eager.batch_size)
@@ -319,10 +319,10 @@ def test_bf16_without_native_support_warns_and_keeps_float32(monkeypatch) -> Non
     monkeypatch.setattr(numerics, "has_native_bf16", lambda device: False)
     with pytest.warns(UserWarning, match="no native bfloat16"):
         model = small_model(HazardPointEnv(), bf16=True)
-    assert not model.updates.step.bf16
-    assert not small_model(HazardPointEnv(), bf16="auto").updates.step.bf16
+    assert not model.updates.step.config.bf16
+    assert not small_model(HazardPointEnv(), bf16="auto").updates.step.config.bf16
     monkeypatch.setattr(numerics, "has_native_bf16", lambda device: True)
-    assert small_model(HazardPointEnv(), bf16="auto").updates.step.bf16
+    assert small_model(HazardPointEnv(), bf16="auto").updates.step.config.bf16
     with pytest.raises(ValueError, match="bf16"):
         small_model(HazardPointEnv(), bf16="yes")
 

@@ -8,11 +8,13 @@ from torch import nn
 from torch.distributions import Normal, kl_divergence
 
 import sb3_dsslac.dsslac as dsslac_module
-import sb3_dsslac.gradient_step as gradient_step_module
-from sb3_dsslac import DSSLAC, LatentPolicy, lagrange, numerics
-from sb3_dsslac.buffers import SequenceBatch
-from sb3_dsslac.latent import LatentModel, LatentRollout
-from sb3_dsslac.optim import adam_step
+import sb3_dsslac.engine.gradient_step as gradient_step_module
+from sb3_dsslac import DSSLAC, LatentPolicy
+from sb3_dsslac.common import lagrange
+from sb3_dsslac.common.buffers import SequenceBatch
+from sb3_dsslac.nn import numerics
+from sb3_dsslac.nn.latent import LatentModel, LatentRollout
+from sb3_dsslac.nn.optim import adam_step
 from sb3_dsslac.presets import PRESETS, THESIS_LR_DECAY_MILESTONE
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import SMALL, small_model
@@ -83,8 +85,8 @@ def test_multiplier_steps_with_the_decayed_step_size(rule: str, monkeypatch) -> 
         rates.append(float(learning_rate))
         return lagrange.sgd_lagrange_step_on_device(raw, cost, budget, learning_rate)
 
-    monkeypatch.setattr("sb3_dsslac.lagrange.sgd_lagrange_step", spy)
-    monkeypatch.setattr("sb3_dsslac.gradient_step.sgd_lagrange_step_on_device", device_spy)  # the "critic" rule
+    monkeypatch.setattr("sb3_dsslac.common.lagrange.sgd_lagrange_step", spy)
+    monkeypatch.setattr("sb3_dsslac.engine.gradient_step.sgd_lagrange_step_on_device", device_spy)  # the "critic" rule
     model = small_model(HazardPointEnv(), lagrange=rule, lr_decay_milestone=50, lr_decay_factor=0.25)
     model.learn(80)
     assert rates and set(rates) <= {2e-4, 0.25 * 2e-4}

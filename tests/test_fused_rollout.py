@@ -1,8 +1,8 @@
 import pytest
 import torch
 
-from sb3_dsslac.fused_rollout import posterior_steps
-from sb3_dsslac.latent import LatentModel
+from sb3_dsslac.nn.fused_rollout import posterior_steps
+from sb3_dsslac.nn.latent import LatentModel
 
 
 def rollout_inputs(model: LatentModel, batch: int, steps: int) -> tuple[torch.Tensor, ...]:

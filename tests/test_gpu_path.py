@@ -2,7 +2,7 @@
 The GPU path, shown on a CPU: bursts on the ``meta`` device standing in for CUDA (no CPU tensor made, no host read, no
 CPU/device mix inside a burst), a model loaded onto it, the compiled steps' graphs traced with a custom backend (no
 input that a CUDA graph would copy is written), compiled against eager bfloat16, TF32 and bfloat16 and the layout by
-device, and ``benchmarks/gpu_check.sh --cpu``.
+device, and ``benchmarks/tools/gpu_check.sh --cpu``.
 """
 
 import os
@@ -20,9 +20,10 @@ from torch._guards import TracingContext
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 
-from sb3_dsslac import DSSLAC, numerics
-from sb3_dsslac.bursts import split_windows
-from sb3_dsslac.latent import LatentModel, channels_last_is_faster
+from sb3_dsslac import DSSLAC
+from sb3_dsslac.engine.bursts import split_windows
+from sb3_dsslac.nn import numerics
+from sb3_dsslac.nn.latent import LatentModel, channels_last_is_faster
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import SMALL_POLICY, small_model
 from tests.test_fast_path import image_batch
@@ -279,7 +280,12 @@ def test_gpu_check_runs_its_cpu_dry_mode(tmp_path) -> None:
     # The same script as on a GPU machine, every CUDA step skipped and said so, at small sizes
     environment = {**os.environ, "OUT_DIR": str(tmp_path), "PYTHON": sys.executable}
     result = subprocess.run(
-        ["bash", "benchmarks/gpu_check.sh", "--cpu"], cwd=REPO, env=environment, capture_output=True, text=True, timeout=600
+        ["bash", "benchmarks/tools/gpu_check.sh", "--cpu"],
+        cwd=REPO,
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     tables = (tmp_path / "tables.md").read_text()

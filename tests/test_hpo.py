@@ -20,8 +20,8 @@ from optuna.trial import TrialState
 from sb3_dsslac import DSSLAC
 from sqlalchemy.exc import IntegrityError, OperationalError
 
-from sb3_dsslac.cli import main
-from sb3_dsslac.hpo import (
+from sb3_dsslac.app.cli import main
+from sb3_dsslac.app.hpo import (
     COST_CONSTRAINT,
     StorageError,
     TuneSpec,
@@ -220,7 +220,7 @@ def test_workers_released_together_on_a_new_storage_all_run(kind: str) -> None:
     # About 20 s per storage: four worker processes, each importing torch and training one tiny trial
     if kind == "postgresql" and POSTGRES_URL is None:
         pytest.skip("no PostgreSQL server: set DSSLAC_TEST_POSTGRES_URL (.ci/postgres.sh)")
-    command = [sys.executable, "tools/tune_start_race.py", "--rounds=1", "--workers=4", "--storages", kind]
+    command = [sys.executable, "benchmarks/tools/tune_start_race.py", "--rounds=1", "--workers=4", "--storages", kind]
     command += ["--env", TINY_ENV, "--timesteps=60", "--hyperparams", *RACE_TRIAL]
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)

@@ -37,7 +37,7 @@ def test_entry_points_start(command: list[str]) -> None:
 
 def test_zoo_train_does_not_load_the_hub_code() -> None:
     code = (
-        "import sys\nfrom sb3_dsslac.zoo import main\n"
+        "import sys\nfrom sb3_dsslac.app.zoo import main\n"
         "try:\n    main(['train', '--help'])\nexcept SystemExit:\n    pass\n"
         "print(sorted(name for name in ('rl_zoo3.enjoy', 'rl_zoo3.load_from_hub') if name in sys.modules))"
     )

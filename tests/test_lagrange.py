@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from sb3_dsslac.env_info import cost_from_info
-from sb3_dsslac.lagrange import inverse_softplus, pid_lagrange_step, sgd_lagrange_step, softplus
+from sb3_dsslac.common.env_info import cost_from_info
+from sb3_dsslac.common.lagrange import inverse_softplus, pid_lagrange_step, sgd_lagrange_step, softplus
 
 
 @pytest.mark.parametrize("value", [1e-3, 0.02, 1.0, 30.0])

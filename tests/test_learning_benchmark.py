@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import torch as th
 
-from sb3_dsslac.plotting import RunResults, load_run
+from sb3_dsslac.app.plotting import RunResults, load_run
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = [
@@ -153,7 +153,13 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     # One torch thread: at most the process's own core plus its render and data threads
     assert 0 < account["cpu"] <= 2 * account["wall"]
 
-    command = [sys.executable, "benchmarks/diagnostics/belief_probe.py", str(tmp_path / "runs" / "seed3"), "--windows", "100"]
+    command = [
+        sys.executable,
+        "benchmarks/tools/diagnostics/belief_probe.py",
+        str(tmp_path / "runs" / "seed3"),
+        "--windows",
+        "100",
+    ]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
     rows = {line.split("|")[1].strip(): line for line in result.stdout.splitlines() if line.startswith("| ")}
@@ -163,7 +169,13 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     assert "cost decoder on 5 fresh episodes (125 steps), online filter: costly share" in result.stdout
     assert "by the goal in view: goal in view " in result.stdout
 
-    command = [sys.executable, "benchmarks/diagnostics/filter_memory.py", str(tmp_path / "runs" / "seed3"), "--env", TINY[1]]
+    command = [
+        sys.executable,
+        "benchmarks/tools/diagnostics/filter_memory.py",
+        str(tmp_path / "runs" / "seed3"),
+        "--env",
+        TINY[1],
+    ]
     command += ["--episodes", "2", "--windows", "1", "2"]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
@@ -171,7 +183,13 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
     windows = [row.split("|")[1].strip() for row in rows]
     assert windows == ["1", "2", "4"]  # the two asked for and the preset's training window
 
-    command = [sys.executable, "benchmarks/diagnostics/latent_scale.py", str(tmp_path / "runs" / "seed3"), "--windows", "20"]
+    command = [
+        sys.executable,
+        "benchmarks/tools/diagnostics/latent_scale.py",
+        str(tmp_path / "runs" / "seed3"),
+        "--windows",
+        "20",
+    ]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
     z1_rows = [line for line in result.stdout.splitlines() if line.count("|") == 4 and line.split("|")[0].strip().isdigit()]
@@ -181,7 +199,7 @@ def test_pixel_runs_show_what_the_first_seed_sees_and_believes(tmp_path) -> None
 
 def test_reconstruction_speed_probes_the_latent_model_at_each_checkpoint(tmp_path) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
-    command = [sys.executable, "benchmarks/diagnostics/reconstruction_speed.py", "--random-steps", "120"]
+    command = [sys.executable, "benchmarks/tools/diagnostics/reconstruction_speed.py", "--random-steps", "120"]
     command += ["--checkpoints", "2", "5", "--episode-steps", "6", "--held-out-steps", "30", "--probe-windows", "100"]
     command += ["--preset", "cpu_pixels32_bounded", "--hyperparams", "sequence_length=3", "compile_updates=false"]
     result = subprocess.run([*command, "--out", str(tmp_path)], cwd=REPO, env=env, capture_output=True, text=True, check=False)
@@ -197,7 +215,7 @@ def test_reconstruction_speed_probes_the_latent_model_at_each_checkpoint(tmp_pat
 
 def test_object_sizes_gives_each_object_its_shares_and_size() -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": "egl"}
-    command = [sys.executable, "benchmarks/diagnostics/object_sizes.py", "--envs", "SafetyGym/PointGoal1-v0"]
+    command = [sys.executable, "benchmarks/tools/diagnostics/object_sizes.py", "--envs", "SafetyGym/PointGoal1-v0"]
     command += ["--sizes", "16", "--episodes", "1"]
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
@@ -211,7 +229,7 @@ def test_object_sizes_gives_each_object_its_shares_and_size() -> None:
 
 
 def test_belief_probe_scores_a_linear_readout_near_one_and_noise_near_zero(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools" / "diagnostics"))
     from belief_probe import frame_targets, ridge_r2
 
     rng = np.random.default_rng(0)
@@ -228,7 +246,7 @@ def test_belief_probe_scores_a_linear_readout_near_one_and_noise_near_zero(monke
 
 
 def test_belief_probe_cost_head_auc_ranks_costly_transitions_against_free_ones(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools" / "diagnostics"))
     from belief_probe import cost_head_scores, roc_auc
 
     costly = np.array([False, False, True, True])
@@ -244,7 +262,7 @@ def test_belief_probe_cost_head_auc_ranks_costly_transitions_against_free_ones(m
 
 
 def test_belief_probe_splits_the_reward_by_the_goal_in_the_frame_acted_on(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools" / "diagnostics"))
     from belief_probe import goal_in_view, reward_by_goal_view
 
     # Two episodes of 2 steps (3 frames each); frames 0 and 1 of the first show the goal, no frame of the second does
@@ -265,7 +283,7 @@ def test_belief_probe_splits_the_reward_by_the_goal_in_the_frame_acted_on(monkey
 
 
 def test_belief_probe_times_the_search_from_a_goal_reached_to_the_next_goal_in_view(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools" / "diagnostics"))
     from belief_probe import goal_in_view, search_lengths
 
     # One episode of 6 steps (7 frames): goals reached at steps 0 and 4; the goal shows in frames 3 and 4 only
@@ -281,7 +299,7 @@ def test_belief_probe_times_the_search_from_a_goal_reached_to_the_next_goal_in_v
 
 
 def test_hazard_visibility_counts_sightings_in_the_window_and_the_bottom_rows(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools" / "diagnostics"))
     from hazard_visibility import hazard_in_view, seen_within
 
     assert seen_within(np.array([1, 0, 0, 0, 1, 0], dtype=bool), 1).tolist() == [1, 0, 0, 0, 1, 0]
@@ -295,7 +313,7 @@ def test_hazard_visibility_counts_sightings_in_the_window_and_the_bottom_rows(mo
 
 
 def test_filter_memory_windows_as_long_as_the_episode_give_the_online_belief(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "diagnostics"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools" / "diagnostics"))
     from filter_memory import filtered_episode, mismatch_share, window_beliefs
 
     from tests.synthetic_envs import HazardPointEnv

@@ -6,9 +6,9 @@ import torch
 from sb3_contrib.common.utils import quantile_huber_loss
 from torch.distributions import Normal, kl_divergence
 
-from sb3_dsslac.actor import LatentActor
-from sb3_dsslac.critics import IQNCostCritic, TwinQCritic, sample_taus
-from sb3_dsslac.latent import LatentModel, build_mlp, fixed_std_gaussian_nll, gaussian_kl, gaussian_nll
+from sb3_dsslac.nn.actor import LatentActor
+from sb3_dsslac.nn.critics import IQNCostCritic, TwinQCritic, sample_taus
+from sb3_dsslac.nn.latent import LatentModel, build_mlp, fixed_std_gaussian_nll, gaussian_kl, gaussian_nll
 
 Z1, Z2, FEATURES, HIDDEN = 4, 8, 16, (32, 32)
 BATCH, STEPS, ACTION_DIM = 2, 3, 2

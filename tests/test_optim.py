@@ -1,8 +1,8 @@
 import pytest
 import torch
 
-from sb3_dsslac.dispatch import DispatchCounter
-from sb3_dsslac.optim import adam_step, clip_grads
+from sb3_dsslac.engine.dispatch import DispatchCounter
+from sb3_dsslac.nn.optim import adam_step, clip_grads
 
 
 @pytest.mark.parametrize("max_norm", [0.5, 3.0, 100.0])

@@ -7,8 +7,8 @@ import pandas as pd
 import pytest
 import yaml
 
-from sb3_dsslac.evaluation import PPO_REFERENCE, normalised_scores
-from sb3_dsslac.plotting import _curves, load_run, plot_learning_curves, report, score_table, task_name
+from sb3_dsslac.app.plotting import _curves, load_run, plot_learning_curves, report, score_table, task_name
+from sb3_dsslac.common.evaluation import PPO_REFERENCE, normalised_scores
 
 
 def fake_run(

@@ -1,16 +1,19 @@
 """
-One-way module structure: the command line sits on top, nothing imports it, the algorithm's update engine sits below
-the algorithm, the networks need no Stable-Baselines3, and the package's imports have no circle.
+The package's folders are its layers: a module imports only modules of its own folder or of the folders below it, the
+networks need no Stable-Baselines3, the command line sits on top with nothing importing it, and the imports have no
+circle.
 """
 
 import ast
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
-# Torch-only modules: the networks and the numerics helpers they use (autocast, precision), none of them importing SB3
-NETWORKS = ("latent", "critics", "actor", "fused_rollout", "convolutions", "gaussian", "numerics")
-# What DSSLAC delegates its updates to: below it, never importing it back
-UPDATE_ENGINE = ("bursts", "gradient_step", "numerics", "lagrange", "optim")
+# Bottom to top; "" is the package's own folder (the algorithm: dsslac, presets, version)
+LAYERS = ("nn", "common", "engine", "", "app")
+# Run as ``python -m``: they may import the application, and nothing imports them
+ENTRY_POINTS = ("sb3_dsslac.__main__", "sb3_dsslac.zoo")
 
 
 def module_name(path: Path) -> str:
@@ -47,12 +50,13 @@ def package_graph(package: str) -> dict[str, set[str]]:
 
 def test_the_parser_sees_imports() -> None:
     graph = package_graph("sb3_dsslac")
-    assert "sb3_dsslac.cli" in graph["sb3_dsslac.__main__"]
-    assert "sb3_dsslac.runs" in graph["sb3_dsslac.plotting"] and "sb3_dsslac.envs" in graph["sb3_dsslac.hpo"]
+    assert "sb3_dsslac.app.cli" in graph["sb3_dsslac.__main__"]
+    assert "sb3_dsslac.app.runs" in graph["sb3_dsslac.app.plotting"]
+    assert "sb3_dsslac.common.envs" in graph["sb3_dsslac.app.hpo"]
 
 
 def test_only_main_imports_the_command_line() -> None:
-    importers = [module for module, imports in package_graph("sb3_dsslac").items() if "sb3_dsslac.cli" in imports]
+    importers = [module for module, imports in package_graph("sb3_dsslac").items() if "sb3_dsslac.app.cli" in imports]
     assert importers == ["sb3_dsslac.__main__"]
 
 
@@ -79,28 +83,47 @@ def test_no_import_circle() -> None:
         visit(module, [])
 
 
-def reachable(graph: dict[str, set[str]], module: str) -> set[str]:
-    """Every module of the graph that ``module`` imports, directly or through others."""
-    found: set[str] = set()
-    stack = [module]
-    while stack:
-        for name in graph[stack.pop()]:
-            if name in graph and name not in found:
-                found.add(name)
-                stack.append(name)
-    return found
+def layer(module: str) -> int:
+    """The layer of a module of sb3_dsslac, from its folder."""
+    parts = module.split(".")
+    folder = parts[1] if len(parts) > 2 or (len(parts) == 2 and parts[1] in LAYERS) else ""
+    return LAYERS.index(folder)
 
 
-def test_the_update_engine_sits_below_the_algorithm() -> None:
+def test_every_module_sits_in_a_layer_folder() -> None:
+    folders = {path.parent.name for path in (REPO / "sb3_dsslac").rglob("*.py")}
+    assert folders == {"sb3_dsslac", *[name for name in LAYERS if name]}
+
+
+def test_layers_import_only_their_own_folder_and_those_below() -> None:
     graph = package_graph("sb3_dsslac")
-    for name in UPDATE_ENGINE:
-        assert "sb3_dsslac.dsslac" not in reachable(graph, f"sb3_dsslac.{name}"), name
+    upward = [
+        f"{module} -> {name}"
+        for module, imports in graph.items()
+        if module not in ENTRY_POINTS
+        for name in imports
+        if name.startswith("sb3_dsslac.") and name in graph and layer(name) > layer(module)
+    ]
+    assert upward == []
+
+
+def test_the_package_front_imports_no_application() -> None:
+    """``import sb3_dsslac`` (the public names) loads no command line, tuning or zoo code."""
+    assert not [name for name in package_graph("sb3_dsslac")["sb3_dsslac"] if name.startswith("sb3_dsslac.app")]
+
+
+@pytest.mark.parametrize("entry_point", ENTRY_POINTS)
+def test_nothing_imports_an_entry_point(entry_point: str) -> None:
+    assert not [module for module, imports in package_graph("sb3_dsslac").items() if entry_point in imports]
+
+
+def test_the_layer_rule_sees_an_upward_import() -> None:
+    assert layer("sb3_dsslac.nn.latent") < layer("sb3_dsslac.common.policies") < layer("sb3_dsslac.engine.bursts")
+    assert layer("sb3_dsslac.engine.bursts") < layer("sb3_dsslac.dsslac") < layer("sb3_dsslac.app.cli")
+    assert layer("sb3_dsslac.presets") == layer("sb3_dsslac.dsslac")
 
 
 def test_the_networks_need_no_stable_baselines() -> None:
-    graph = package_graph("sb3_dsslac")
-    networks = {f"sb3_dsslac.{name}" for name in NETWORKS}
-    for module in networks:
-        assert reachable(graph, module) <= networks, module
-        path = REPO / "sb3_dsslac" / f"{module.split('.')[-1]}.py"
-        assert not {name.split(".")[0] for name in imported_modules(path)} & {"stable_baselines3", "sb3_contrib"}, module
+    for path in (REPO / "sb3_dsslac" / "nn").glob("*.py"):
+        roots = {name.split(".")[0] for name in imported_modules(path)}
+        assert not roots & {"stable_baselines3", "sb3_contrib", "gymnasium"}, path.name

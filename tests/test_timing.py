@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from sb3_dsslac.timing import ACTIVITIES, TimeAccount, measured
+from sb3_dsslac.common.timing import ACTIVITIES, TimeAccount, measured
 
 
 def test_nested_activities_are_counted_once() -> None:

@@ -1,4 +1,4 @@
-"""benchmarks/update_profile.py: the by-part table of one DS-SLAC update at the smallest pixel shapes."""
+"""benchmarks/tools/update_profile.py: the by-part table of one DS-SLAC update at the smallest pixel shapes."""
 
 import math
 from pathlib import Path
@@ -7,7 +7,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def test_update_profile_lists_every_part_with_its_flops_and_times(monkeypatch, capsys) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools"))
     import update_profile
 
     update_profile.main(["--preset", "cpu", "--size", "32", "--updates", "2", "--profile-updates", "2", "--fill", "100"])
@@ -45,7 +45,7 @@ def test_update_profile_lists_every_part_with_its_flops_and_times(monkeypatch, c
 
 
 def test_arithmetic_kind_names_the_profilers_and_the_flop_counters_ops(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools"))
     import update_profile
 
     assert update_profile.arithmetic_kind("aten::mkldnn_convolution") == "convolutions"
@@ -57,11 +57,11 @@ def test_arithmetic_kind_names_the_profilers_and_the_flop_counters_ops(monkeypat
 
 
 def test_free_convolutions_keep_each_layers_shapes_layouts_and_parameters(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools"))
     import torch as th
     import update_profile
 
-    from sb3_dsslac.convolutions import SubpixelConvTranspose2d
+    from sb3_dsslac.nn.convolutions import SubpixelConvTranspose2d
 
     layers = [
         th.nn.Conv2d(3, 8, 5, stride=2, padding=2),
@@ -82,7 +82,7 @@ def test_free_convolutions_keep_each_layers_shapes_layouts_and_parameters(monkey
 
 
 def test_the_floor_measures_the_convolutions_with_free_stand_ins(monkeypatch, capsys) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools"))
     import update_profile
 
     arguments = ["--preset", "cpu", "--size", "32", "--updates", "2", "--profile-updates", "2", "--fill", "100"]
@@ -100,7 +100,7 @@ def test_the_floor_measures_the_convolutions_with_free_stand_ins(monkeypatch, ca
 
 
 def test_free_convolutions_replace_the_layers_that_run_convolution_ops(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks" / "tools"))
     import update_profile
 
     from sb3_dsslac import DSSLAC

@@ -11,13 +11,13 @@ import pytest
 import torch as th
 import yaml
 
-import sb3_dsslac.cli
-import sb3_dsslac.hpo
+import sb3_dsslac.app.cli
+import sb3_dsslac.app.hpo
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.cli import PRESET_SUMMARIES, main
+from sb3_dsslac.app.cli import PRESET_SUMMARIES, main
+from sb3_dsslac.app.runs import TrainConfig, train
+from sb3_dsslac.common.validation import InputError, check_algorithm, error_line
 from sb3_dsslac.presets import PRESETS
-from sb3_dsslac.runs import TrainConfig, train
-from sb3_dsslac.validation import InputError, check_algorithm, error_line
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_cli import TINY_ENV, TINY_FLAGS, run_train
 from tests.test_dsslac import SMALL_POLICY
@@ -33,8 +33,8 @@ def no_training(monkeypatch):
     def started(*args, **kwargs):
         raise AssertionError("training started")
 
-    monkeypatch.setattr(sb3_dsslac.cli, "train", started)
-    monkeypatch.setattr(sb3_dsslac.hpo, "tune", started)
+    monkeypatch.setattr(sb3_dsslac.app.cli, "train", started)
+    monkeypatch.setattr(sb3_dsslac.app.hpo, "tune", started)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -257,7 +257,7 @@ def test_train_help_describes_every_preset(capsys) -> None:
 
 def test_the_zoo_stops_bad_input_before_its_log_folder(tmp_path: Path, capsys, monkeypatch) -> None:
     pytest.importorskip("rl_zoo3")
-    from sb3_dsslac.zoo import main as zoo
+    from sb3_dsslac.app.zoo import main as zoo
 
     monkeypatch.setattr(sys, "argv", ["zoo"])
     config = tmp_path / "tiny.yml"

@@ -6,8 +6,8 @@ import torch as th
 from sb3_contrib.common.utils import quantile_huber_loss
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.critics import IQNCostCritic, sample_taus
-from sb3_dsslac.lagrange import pid_lagrange_step
+from sb3_dsslac.common.lagrange import pid_lagrange_step
+from sb3_dsslac.nn.critics import IQNCostCritic, sample_taus
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import small_model
 

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from sb3_dsslac import DSSLAC
-from sb3_dsslac.dsslac import SHARED_POLICY_KEYWORDS
+from sb3_dsslac.common.policies import SHARED_POLICY_KEYWORDS
 from sb3_dsslac.presets import PRESETS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -57,7 +57,7 @@ def test_the_cpu_file_is_the_cpu_preset() -> None:
 
 def test_the_zoo_sampler_and_its_converter_agree() -> None:
     pytest.importorskip("rl_zoo3")
-    from sb3_dsslac.zoo import convert_zoo_params, sample_zoo_params
+    from sb3_dsslac.app.zoo import convert_zoo_params, sample_zoo_params
 
     trial = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0)).ask()
     sampled = sample_zoo_params(trial, n_actions=2, n_envs=1, additional_args={})

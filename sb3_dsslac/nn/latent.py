@@ -1,0 +1,487 @@
+"""Sequential latent variable model of (DS-)SLAC: encoder, decoder, latent dynamics, reward and cost decoders."""
+
+import contextlib
+import itertools
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from sb3_dsslac.nn.convolutions import DenseConv2d, DenseConvTranspose2d, SubpixelConvTranspose2d
+from sb3_dsslac.nn.fused_rollout import posterior_steps
+from sb3_dsslac.nn.gaussian import STD_EPS, GaussianBounds
+from sb3_dsslac.nn.numerics import autocast_enabled
+
+_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+_LOG_COST_EPS = math.log(1e-6)
+
+
+def init_weights(module: nn.Module) -> None:
+    """Xavier-uniform (gain 1) weights and zero biases for every linear and (transposed) convolution layer."""
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear | nn.Conv2d | nn.ConvTranspose2d):
+            nn.init.xavier_uniform_(layer.weight, gain=1.0)
+            if layer.bias is not None:
+                nn.init.zeros_(layer.bias)
+
+
+def build_mlp(
+    input_dim: int,
+    output_dim: int,
+    hidden_units: tuple[int, ...],
+    activation: Callable[[], nn.Module],
+    output_activation: Callable[[], nn.Module] | None = None,
+) -> nn.Sequential:
+    """
+    Multi-layer perceptron ``input_dim -> *hidden_units -> output_dim``.
+
+    :param activation: factory of the hidden activation module
+    :param output_activation: factory of the activation applied to the output, or None for a linear output
+    """
+    layers: list[nn.Module] = []
+    in_dim = input_dim
+    for units in hidden_units:
+        layers += [nn.Linear(in_dim, units), activation()]
+        in_dim = units
+    layers.append(nn.Linear(in_dim, output_dim))
+    if output_activation is not None:
+        layers.append(output_activation())
+    return nn.Sequential(*layers)
+
+
+def gaussian_kl(mean_q: Tensor, std_q: Tensor, mean_p: Tensor, std_p: Tensor) -> Tensor:
+    """Elementwise analytic ``KL(N(mean_q, std_q^2) || N(mean_p, std_p^2))``, same shape as the (broadcast) inputs."""
+    var_ratio = (std_q / std_p).pow(2)
+    mean_term = ((mean_q - mean_p) / std_p).pow(2)
+    return 0.5 * (var_ratio + mean_term - 1.0 - torch.log(var_ratio))
+
+
+def gaussian_nll(x: Tensor, mean: Tensor, std: Tensor) -> Tensor:
+    """Elementwise ``-log N(x | mean, std^2)``."""
+    return 0.5 * ((x - mean) / std).pow(2) + torch.log(std) + _HALF_LOG_2PI
+
+
+def fixed_std_gaussian_nll(x: Tensor, mean: Tensor, std: float) -> Tensor:
+    """
+    ``-log N(x | mean, std^2)`` of (B, ...) tensors summed over all but the first dim, mean over it: a scalar, from one
+    squared-error sum (three ops forward and two backward, where the elementwise form takes seven and about as many).
+    """
+    values_per_row = math.prod(x.shape[1:])
+    squared_error = F.mse_loss(mean.float(), x, reduction="sum")
+    return squared_error.mul(0.5 / (std**2 * x.shape[0])).add(values_per_row * (math.log(std) + _HALF_LOG_2PI))
+
+
+class GaussianMLP(nn.Module):
+    """
+    Diagonal Gaussian whose mean and std are an ELU MLP of the concatenated inputs: the MLP's ``[mean_raw, raw]`` made
+    a mean and a std by ``bounds`` (by default ``std = softplus(raw) + 1e-5``, the reference code's).
+
+    :param bounds: the std's floor and ceiling and the mean's bound (None: the reference code's)
+    """
+
+    def __init__(
+        self, input_dim: int, output_dim: int, hidden_units: tuple[int, ...], bounds: GaussianBounds | None = None
+    ) -> None:
+        super().__init__()
+        self.bounds = GaussianBounds() if bounds is None else bounds
+        self.net = build_mlp(input_dim, 2 * output_dim, hidden_units, nn.ELU)
+
+    def forward(self, *inputs: Tensor) -> tuple[Tensor, Tensor]:
+        """Inputs (..., d_k) concatenated on the last dim -> (mean, std), each (..., output_dim)."""
+        x = torch.cat(inputs, dim=-1) if len(inputs) > 1 else inputs[0]
+        if x.dim() > 2:  # rows through the layers: a linear layer on more dims adds two views each way
+            out = self.net(x.reshape(-1, x.shape[-1])).view(*x.shape[:-1], -1)
+        else:
+            out = self.net(x)
+        mean_raw, raw_std = out.chunk(2, dim=-1)
+        return self.bounds(mean_raw, raw_std)
+
+
+class LatentRollout(NamedTuple):
+    """Posterior rollout over a sequence; every field is (B, T+1, dim)."""
+
+    z1_mean: Tensor
+    z1_std: Tensor
+    z1: Tensor
+    z2: Tensor
+
+
+# Output channels of the encoder's stride-2 convolutions in the published networks (the decoder mirrors them)
+THESIS_IMAGE_CHANNELS = (32, 64, 128, 256)
+
+
+def _image_encoder(channels: int, size: int, feature_dim: int, widths: tuple[int, ...]) -> nn.Sequential:
+    """
+    Conv encoder (C, size, size) -> (feature_dim, 1, 1), ELU after every layer (output included): stride-2 layers of
+    ``widths`` output channels (kernels 5, 3, 3, 3), then a 4x4 convolution; 32x32 images drop the last stride-2 layer.
+    """
+    specs = tuple(zip(widths, (5, 3, 3, 3), (2, 1, 1, 1), strict=True))[: 4 if size == 64 else 3]
+    layers: list[nn.Module] = []
+    in_ch = channels
+    for out_ch, kernel, pad in specs:
+        layers += [nn.Conv2d(in_ch, out_ch, kernel, stride=2, padding=pad), nn.ELU()]
+        in_ch = out_ch
+    layers += [DenseConv2d(in_ch, feature_dim, 4, stride=1, padding=0), nn.ELU()]
+    return nn.Sequential(*layers)
+
+
+def _image_decoder(z_dim: int, channels: int, size: int, widths: tuple[int, ...]) -> nn.Sequential:
+    """
+    ConvTranspose decoder (z_dim, 1, 1) -> (C, size, size), LeakyReLU(0.2) after every layer (output included): the
+    encoder's ``widths`` in reverse; 32x32 images drop the first stride-2 layer.
+    """
+    mirrored = tuple(reversed(widths[: 4 if size == 64 else 3]))
+    layers: list[nn.Module] = [DenseConvTranspose2d(z_dim, mirrored[0], 4, stride=1, padding=0), nn.LeakyReLU(0.2)]
+    for in_ch, out_ch in itertools.pairwise(mirrored):
+        layers += [nn.ConvTranspose2d(in_ch, out_ch, 3, stride=2, padding=1, output_padding=1), nn.LeakyReLU(0.2)]
+    output = SubpixelConvTranspose2d(mirrored[-1], channels, 5, stride=2, padding=2, output_padding=1)
+    layers += [output, nn.LeakyReLU(0.2)]
+    return nn.Sequential(*layers)
+
+
+def channels_last_is_faster(widths: tuple[int, ...], device: torch.device) -> bool:
+    """
+    Whether the convolutions of these encoder ``widths`` run channels-last (NHWC) on ``device``, the layout measured
+    faster for them (the replay buffer then stores the frames channels-last too); the arithmetic is the same.
+
+    - The thesis's widths (32 channels up): NHWC on CPUs (oneDNN) and GPUs (tensor cores) alike.
+    - Narrower widths on an x86 CPU (AVX2 or AVX512): in NCHW, oneDNN reorders every activation to its blocked layout
+      and back, where its NHWC kernels need none: 7.4 of 27 ms of oneDNN work in a compiled ``cpu_pixels`` update on an
+      Intel Xeon's AVX512, 7.7 of 36 ms with ATen, inductor, oneDNN and MKL held to AVX2 on it
+      (docs/performance.md). With the frames stored channels-last, NHWC ran 1.05x (AVX512) and 1.09x (held to AVX2) the
+      NCHW updates/s on 32x32 frames too. Not yet re-measured on an AVX2 CPU itself (an AMD EPYC).
+    - NCHW elsewhere, GPUs included: narrow widths were not measured there, and the reasons above are oneDNN's.
+    """
+    if widths[0] >= 32:
+        return True
+    return device.type == "cpu" and torch.backends.cpu.get_cpu_capability().startswith("AVX")
+
+
+class LatentModel(nn.Module):
+    """
+    Stochastic latent variable model of Safe SLAC / DS-SLAC with latent ``z = [z1, z2]``.
+
+    Images (C, 64, 64) use the published conv encoder/decoder; (C, 32, 32) uses the same nets with one stride-2 layer
+    less on each side; 1-D observations (D,) use MLPs. Observations are floats (images scaled to [0, 1]).
+
+    :param observation_shape: (C, 64, 64), (C, 32, 32) or (D,)
+    :param action_dim: number of action dimensions (actions in [-1, 1])
+    :param feature_dim: encoder output size per frame
+    :param z1_dim: size of the stochastic z1 (the only part with a KL term)
+    :param z2_dim: size of z2
+    :param hidden_units: hidden layers of every Gaussian / Bernoulli MLP (and of the vector encoder/decoder)
+    :param image_noise: variance of the Gaussian observation likelihood (std = sqrt(image_noise))
+    :param reward_loss_weight: scale of the Gaussian reward loss (1 in the thesis)
+    :param cost_loss_weight: scale of the Bernoulli cost loss
+    :param cost_positive_weight: extra weight of the positive (cost > 0) samples in the cost loss
+    :param image_channels: output channels of the encoder's four stride-2 convolutions, mirrored by the decoder (images
+        only; 32x32 images use the first three)
+    :param min_std: the floor on the std of the latent Gaussians (z1's prior and posterior, z2's): 1e-5 in the reference
+        code, where a prior std at the floor lets one latent excursion make a KL of 1e10 or more
+    :param max_std: the ceiling on their std (None in the reference code: ``softplus(raw) + min_std``, unbounded)
+    :param mean_bound: the bound on their means' absolute value (None in the reference code). With both bounds every
+        latent stays within ``mean_bound + max_std * |noise|`` (``GaussianBounds``)
+    """
+
+    def __init__(
+        self,
+        observation_shape: tuple[int, ...],
+        action_dim: int,
+        feature_dim: int = 200,
+        z1_dim: int = 32,
+        z2_dim: int = 200,
+        hidden_units: tuple[int, ...] = (256, 256),
+        image_noise: float = 0.4,
+        reward_loss_weight: float = 1.0,
+        cost_loss_weight: float = 30.0,
+        cost_positive_weight: float = 100.0,
+        image_channels: tuple[int, ...] = THESIS_IMAGE_CHANNELS,
+        min_std: float = STD_EPS,
+        max_std: float | None = None,
+        mean_bound: float | None = None,
+    ) -> None:
+        super().__init__()
+        self.image_channels = tuple(int(width) for width in image_channels)
+        if len(self.image_channels) != 4 or min(self.image_channels) < 1:
+            raise ValueError(
+                f"image_channels must be 4 positive channel counts of the encoder's stride-2 convolutions (the decoder "
+                f"mirrors them), got {tuple(image_channels)}; the thesis's are {THESIS_IMAGE_CHANNELS}"
+            )
+        self.observation_shape = tuple(observation_shape)
+        self.action_dim = action_dim
+        self.feature_dim = feature_dim
+        self.z1_dim = z1_dim
+        self.z2_dim = z2_dim
+        self.z_dim = z1_dim + z2_dim
+        self.image_std = math.sqrt(image_noise)
+        self.reward_loss_weight = reward_loss_weight
+        self.cost_loss_weight = cost_loss_weight
+        self.cost_positive_weight = cost_positive_weight
+        bounds = GaussianBounds(min_std, max_std, mean_bound)
+
+        if len(self.observation_shape) == 3:
+            channels, height, width = self.observation_shape
+            if height != width or height not in (32, 64):
+                raise ValueError(
+                    f"Unsupported image shape {self.observation_shape}: only 64x64 images (and 32x32 for small tests) "
+                    "are supported. Resize the observations, e.g. width=64, height=64 in safety_envs."
+                )
+            self.encoder = _image_encoder(channels, height, feature_dim, self.image_channels)
+            self.decoder = _image_decoder(self.z_dim, channels, height, self.image_channels)
+        elif len(self.observation_shape) == 1:
+            obs_dim = self.observation_shape[0]
+            self.encoder = build_mlp(obs_dim, feature_dim, hidden_units, nn.ELU, nn.ELU)
+            self.decoder = build_mlp(self.z_dim, obs_dim, hidden_units, nn.ELU)
+        else:
+            raise ValueError(f"observation_shape must be (C, H, W) or (D,), got {self.observation_shape}")
+
+        # p(z2_0 | z1_0) = q(z2_0 | z1_0)
+        self.z2_init = GaussianMLP(z1_dim, z2_dim, hidden_units, bounds)
+        # p(z1_{t+1} | z2_t, a_t)
+        self.z1_prior = GaussianMLP(z2_dim + action_dim, z1_dim, hidden_units, bounds)
+        # p(z2_{t+1} | z1_{t+1}, z2_t, a_t) = q(z2_{t+1} | ...)
+        self.z2_transition = GaussianMLP(z1_dim + z2_dim + action_dim, z2_dim, hidden_units, bounds)
+        # q(z1_0 | f_0)
+        self.z1_posterior_init = GaussianMLP(feature_dim, z1_dim, hidden_units, bounds)
+        # q(z1_{t+1} | f_{t+1}, z2_t, a_t)
+        self.z1_posterior = GaussianMLP(feature_dim + z2_dim + action_dim, z1_dim, hidden_units, bounds)
+
+        transition_dim = 2 * self.z_dim + action_dim
+        # p(r_t | z_t, a_t, z_{t+1})
+        self.reward_decoder = GaussianMLP(transition_dim, 1, hidden_units)
+        # p(c_t > 0 | z_t, a_t, z_{t+1}) as one logit
+        self.cost_decoder = build_mlp(transition_dim, 1, hidden_units, nn.ELU)
+
+        init_weights(self)
+        self.set_layout_for(torch.device("cpu"))  # where modules are built; DSSLAC sets its own device's
+
+    def set_layout_for(self, device: torch.device) -> None:
+        """
+        Lay the convolutions' weights out in the layout measured faster for them on ``device``
+        (``channels_last_is_faster``), noted in ``channels_last``: the replay buffer stores the frames in it
+        (``SequenceReplayBuffer.set_channels_last_frames``). Only the layout changes, not the values or the parameters.
+        """
+        self.channels_last = len(self.observation_shape) == 3 and channels_last_is_faster(self.image_channels, device)
+        self.to(memory_format=torch.channels_last if self.channels_last else torch.contiguous_format)
+
+    def encode(self, observations: Tensor) -> Tensor:
+        """Observations (B, T, *observation_shape) -> features (B, T, feature_dim)."""
+        batch, steps = observations.shape[:2]
+        features = self.encoder(observations.reshape(batch * steps, *self.observation_shape))
+        return features.view(batch, steps, self.feature_dim)
+
+    def decode(self, z: Tensor) -> Tensor:
+        """Latents (B, T, z_dim) -> mean of the observation Gaussian (B, T, *observation_shape)."""
+        batch, steps = z.shape[:2]
+        flat = z.reshape(batch * steps, self.z_dim)
+        if len(self.observation_shape) == 3:
+            flat = flat.view(batch * steps, self.z_dim, 1, 1)
+        return self.decoder(flat).view(batch, steps, *self.observation_shape)
+
+    def posterior(self, features: Tensor, actions: Tensor, noise: tuple[Tensor, Tensor] | None = None) -> LatentRollout:
+        """
+        Reparameterised posterior rollout: features (B, T+1, F), actions (B, T, A) -> fields (B, T+1, dim).
+
+        :param noise: the standard normal noise of the z1 and z2 samples, (T+1, B, Z1) and (T+1, B, Z2); drawn if None
+        """
+        mixed_precision = autocast_enabled(features.device.type)
+        if mixed_precision:  # the rollout's small matrix products run in float32 below; bfloat16 is for the convolutions
+            features = features.float()
+        batch, frames = features.shape[:2]
+        if noise is None:
+            z1_noise = torch.randn(frames, batch, self.z1_dim, device=features.device, dtype=features.dtype)
+            z2_noise = torch.randn(frames, batch, self.z2_dim, device=features.device, dtype=features.dtype)
+        else:
+            z1_noise, z2_noise = noise
+        z1_mean, z1_std = self.z1_posterior_init(features[:, 0])
+        z1 = torch.addcmul(z1_mean, z1_std, z1_noise[0])
+        z2_mean, z2_std = self.z2_init(z1)
+        z2 = torch.addcmul(z2_mean, z2_std, z2_noise[0])
+        first = (z1_mean, z1_std, z1, z2)
+        if frames == 1:
+            return LatentRollout(*(value.unsqueeze(1) for value in first))
+        if mixed_precision:
+            first = tuple(value.float() for value in first)
+        with torch.autocast(features.device.type, enabled=False) if mixed_precision else contextlib.nullcontext():
+            if torch.compiler.is_compiling():  # the compiler differentiates (and fuses) the steps itself
+                return self._posterior_steps(features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:])
+            steps = posterior_steps(
+                features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:], self.z1_posterior, self.z2_transition
+            )
+        return LatentRollout(*steps)
+
+    def _posterior_steps(
+        self, features: Tensor, actions: Tensor, first: tuple[Tensor, ...], z1_noise: Tensor, z2_noise: Tensor
+    ) -> LatentRollout:
+        """``posterior_steps`` step by step, recorded by autograd."""
+        means, stds, z1s, z2s = ([value] for value in first)
+        z2 = first[3]
+        for feature, action, z1_eps, z2_eps in zip(
+            features.unbind(1), actions.unbind(1), z1_noise.unbind(0), z2_noise.unbind(0), strict=True
+        ):
+            z1_mean, z1_std = self.z1_posterior(feature, z2, action)
+            z1 = torch.addcmul(z1_mean, z1_std, z1_eps)
+            z2_mean, z2_std = self.z2_transition(z1, z2, action)
+            z2 = torch.addcmul(z2_mean, z2_std, z2_eps)
+            means.append(z1_mean)
+            stds.append(z1_std)
+            z1s.append(z1)
+            z2s.append(z2)
+        return LatentRollout(*(torch.stack(values, dim=1) for values in (means, stds, z1s, z2s)))
+
+    def _check_sequence(self, observations: Tensor, actions: Tensor) -> None:
+        if tuple(observations.shape[2:]) != self.observation_shape:
+            raise ValueError(f"observations must be (B, T+1, *{self.observation_shape}), got {tuple(observations.shape)}")
+        batch, frames = observations.shape[:2]
+        if tuple(actions.shape) != (batch, frames - 1, self.action_dim):
+            raise ValueError(
+                f"actions must be (B, T, A) = ({batch}, {frames - 1}, {self.action_dim}), got {tuple(actions.shape)}"
+            )
+
+    def loss(
+        self,
+        observations: Tensor,
+        actions: Tensor,
+        rewards: Tensor,
+        costs: Tensor,
+        terminated: Tensor,
+        features: Tensor | None = None,
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """
+        Negative ELBO plus reward and cost likelihoods on a batch of sequences (``loss_and_filter`` without other
+        sequences; the arguments are its own).
+
+        :return: total scalar loss and the detached terms ``kl``, ``image_loss``, ``reward_loss``, ``cost_loss``
+            (each summed over time (and pixels), mean over the batch), with the diagnostics of ``loss_and_filter``
+        """
+        total, info, _ = self.loss_and_filter(observations, actions, rewards, costs, terminated, features=features)
+        return total, info
+
+    def loss_and_filter(
+        self,
+        observations: Tensor,
+        actions: Tensor,
+        rewards: Tensor,
+        costs: Tensor,
+        terminated: Tensor,
+        features: Tensor | None = None,
+        other: tuple[Tensor, Tensor] | None = None,
+        noise: tuple[Tensor, Tensor] | None = None,
+    ) -> tuple[Tensor, dict[str, Tensor], Tensor | None]:
+        """
+        ``loss``, and the posterior samples of ``other`` sequences without gradient, from one rollout over both batches
+        (the rows of a rollout never meet): a few hundred ops fewer than a second rollout, and the same numbers.
+
+        :param observations: (B, T+1, *observation_shape) floats (images in [0, 1])
+        :param actions: (B, T, A) in [-1, 1]
+        :param rewards: (B, T) reward of transition t -> t+1
+        :param costs: (B, T) cost of transition t -> t+1 (binarised as cost > 0)
+        :param terminated: (B, T) 1.0 where transition t ended the episode by termination (masks the reward term)
+        :param features: ``encode(observations)`` (B, T+1, feature_dim) if the caller already computed it
+        :param other: observations (B', T+1, *observation_shape) and actions (B', T, A) of the other sequences
+        :param noise: the rollout's noise (T+1, B + B', Z1) and (T+1, B + B', Z2), the loss's batch first; drawn if None
+        :return: the total loss, its detached terms (as ``loss``) with the batch's extremes that name the cause of a
+            spike (``prior_std_min``, ``posterior_std_min``: the smallest std of z1's prior and posterior;
+            ``z_abs_max``, ``reconstruction_abs_max``: the largest |z| and |decoder output|), and the other sequences'
+            ``z = [z1, z2]`` (B', T+1, z_dim), or None without ``other``
+        """
+        self._check_sequence(observations, actions)
+        if rewards.shape != actions.shape[:2] or costs.shape != rewards.shape or terminated.shape != rewards.shape:
+            raise ValueError(f"rewards, costs and terminated must be (B, T) = {tuple(actions.shape[:2])}")
+
+        features = self.encode(observations) if features is None else features
+        rollout_actions = actions
+        if other is not None:
+            other_observations, other_actions = other
+            self._check_sequence(other_observations, other_actions)
+            with torch.no_grad():
+                other_features = self.encode(other_observations)
+            features = torch.cat([features, other_features])
+            rollout_actions = torch.cat([actions, other_actions])
+        rollout = self.posterior(features, rollout_actions, noise)
+        z = torch.cat([rollout.z1, rollout.z2], dim=-1)
+        z1_mean, z1_std, z2_prev = rollout.z1_mean, rollout.z1_std, rollout.z2[:, :-1]
+        other_z = None
+        if other is not None:
+            n_own = observations.shape[0]
+            z, other_z = z.split([n_own, z.shape[0] - n_own])
+            other_z = other_z.detach()
+            z1_mean, z1_std, z2_prev = z1_mean[:n_own], z1_std[:n_own], z2_prev[:n_own]
+
+        # KL(q(z1_t | .) || p(z1_t | .)): N(0, I) at t = 0, teacher-forced p(z1_t | z2_{t-1}, a_{t-1}) after.
+        prior_mean, prior_std = self.z1_prior(z2_prev, actions)
+        # N(0, 1) at t = 0, padded in front: one op each, where a cat with a filled slice takes three
+        prior_mean = F.pad(prior_mean, (0, 0, 1, 0))
+        prior_std = F.pad(prior_std, (0, 0, 1, 0), value=1.0)
+        kl = gaussian_kl(z1_mean, z1_std, prior_mean, prior_std).sum(dim=(1, 2)).mean()
+
+        reconstruction = self.decode(z)
+        image_loss = fixed_std_gaussian_nll(observations, reconstruction, self.image_std)
+
+        # One row per transition (B * T, .): a linear layer on (B, T, .) adds two views each way
+        transitions = torch.cat([z[:, :-1], actions, z[:, 1:]], dim=-1).flatten(0, 1)
+        reward_mean, reward_std = self.reward_decoder(transitions)
+        reward_nll = gaussian_nll(rewards, reward_mean.view_as(rewards), reward_std.view_as(rewards))
+        reward_loss = self.reward_loss_weight * (reward_nll * (1.0 - terminated)).sum(dim=1).mean()
+
+        # log(p + 1e-6) and log(1 - p + 1e-6) from the logit without cancellation: logaddexp(log p, log 1e-6).
+        logits = self.cost_decoder(transitions).view_as(costs)
+        log_eps = logits.new_full((), _LOG_COST_EPS)
+        log_p = torch.logaddexp(F.logsigmoid(logits), log_eps)
+        log_not_p = torch.logaddexp(F.logsigmoid(-logits), log_eps)
+        cost_ll = torch.where(costs > 0, self.cost_positive_weight * log_p, log_not_p)
+        cost_loss = -self.cost_loss_weight * cost_ll.sum(dim=1).mean()
+
+        total = kl + image_loss + reward_loss + cost_loss
+        terms = {"kl": kl, "image_loss": image_loss, "reward_loss": reward_loss, "cost_loss": cost_loss}
+        with torch.no_grad():  # computed without gradient, nothing to detach
+            extremes = {
+                "prior_std_min": prior_std[:, 1:].amin(),
+                "posterior_std_min": z1_std.amin(),
+                "z_abs_max": z.abs().amax(),
+                "reconstruction_abs_max": reconstruction.abs().amax(),
+            }
+        return total, {**{key: value.detach() for key, value in terms.items()}, **extremes}, other_z
+
+    def sample_latents(self, observations: Tensor, actions: Tensor) -> Tensor:
+        """Posterior samples ``z = [z1, z2]`` (B, T+1, z_dim) of observations (B, T+1, *obs_shape), actions (B, T, A)."""
+        self._check_sequence(observations, actions)
+        return self.latents_from_features(self.encode(observations), actions)
+
+    def cost_probability(self, z: Tensor, actions: Tensor, next_z: Tensor) -> Tensor:
+        """The cost decoder's p(c > 0) of transitions z (N, z_dim), actions (N, A) -> next_z (N, z_dim), shape (N,)."""
+        return torch.sigmoid(self.cost_decoder(torch.cat([z, actions, next_z], dim=-1))).squeeze(-1)
+
+    def latents_from_features(self, features: Tensor, actions: Tensor) -> Tensor:
+        """Posterior samples ``z = [z1, z2]`` (B, T+1, z_dim) of encoder features (B, T+1, F) and actions (B, T, A)."""
+        rollout = self.posterior(features, actions)
+        return torch.cat([rollout.z1, rollout.z2], dim=-1)
+
+    def filter_step(
+        self, feature: Tensor, z2_prev: Tensor, action_prev: Tensor, episode_start: Tensor, deterministic: bool = False
+    ) -> tuple[Tensor, Tensor]:
+        """
+        One step of the online belief filter used when acting, batched over N environments.
+
+        :param feature: (N, feature_dim) encoder feature of the current frame
+        :param z2_prev: (N, z2_dim) previous z2 (ignored where ``episode_start``)
+        :param action_prev: (N, A) previous action (ignored where ``episode_start``)
+        :param episode_start: (N,) bool, True where the frame is the first of an episode
+        :param deterministic: use the distribution means instead of samples
+        :return: z1 (N, z1_dim) and z2 (N, z2_dim)
+        """
+        start = episode_start.to(torch.bool).view(-1, 1)
+        init_mean, init_std = self.z1_posterior_init(feature)
+        step_mean, step_std = self.z1_posterior(feature, z2_prev, action_prev)
+        z1 = torch.where(start, init_mean, step_mean)
+        if not deterministic:
+            z1 = z1 + torch.where(start, init_std, step_std) * torch.randn_like(z1)
+        init_mean, init_std = self.z2_init(z1)
+        step_mean, step_std = self.z2_transition(z1, z2_prev, action_prev)
+        z2 = torch.where(start, init_mean, step_mean)
+        if not deterministic:
+            z2 = z2 + torch.where(start, init_std, step_std) * torch.randn_like(z2)
+        return z1, z2
