@@ -20,6 +20,7 @@ first-person beside third-person).
     python benchmarks/learning.py --seeds 0 1 2 --parallel 2                # three seeds, two at a time
     python benchmarks/learning.py --preset cpu_pixels --obs-type pixels --sim-steps 300000 --seeds 0 1 2 --parallel 2
     python benchmarks/learning.py ... --sim-steps 600000 --report-at 300000    # the table at 600k, and at 300k
+    python benchmarks/learning.py ... --report-only                             # the table of stopped runs, as they stand
 
 ``train_and_evaluate`` trains one seed in this process (the variants benchmark uses it).
 """
@@ -480,11 +481,14 @@ def time_account_table(runs_root: Path, seeds: list[int]) -> str:
 
 def write_pictures(out: Path, run_dir: Path, episode_seed: int) -> str:
     """
-    ``beliefs.png`` and ``episode.mp4`` of the run's final model on one evaluation episode, with the policy its
-    evaluations used (a car's mean action can stand still where its sampled actions drive); a line saying so.
+    ``beliefs.png`` and ``episode.mp4`` of the run's final model (a stopped run's last checkpoint) on one evaluation
+    episode, with the policy its evaluations used (a car's mean action can stand still where its sampled actions drive);
+    a line saying so.
     """
     config = load_config(run_dir)
-    model = DSSLAC.load(run_dir / FINAL_MODEL, device="cpu")
+    checkpoint = find_checkpoint(run_dir)
+    final = run_dir / FINAL_MODEL
+    model = DSSLAC.load(final if final.is_file() or checkpoint is None else checkpoint.model, device="cpu")
     deterministic = config.eval_deterministic
     beliefs = episode_beliefs(model, config.env, seed=episode_seed, deterministic=deterministic, env_kwargs=config.env_kwargs)
     plot_beliefs(beliefs, out / "beliefs.png")
@@ -525,6 +529,10 @@ def main() -> None:
     parser.add_argument(
         "--no-pictures", action="store_true", help="on pixels, skip beliefs.png and episode.mp4 of the first seed"
     )
+    parser.add_argument(
+        "--report-only", action="store_true",
+        help="tabulate the seeds as they stand, stopped ones included (their evaluations so far), training nothing",
+    )  # fmt: skip
     parser.add_argument("--poll", type=float, default=5.0, help="seconds between checks on the running seeds")
     parser.add_argument(
         "--out", type=Path, help="results folder (default benchmarks/results/learning_<task>_<obs>_<preset>[_<key>_<value>])"
@@ -537,7 +545,8 @@ def main() -> None:
     runs_root = out / RUNS_DIR
     runs_root.mkdir(parents=True, exist_ok=True)
 
-    run_seeds(args, runs_root)
+    if not args.report_only:
+        run_seeds(args, runs_root)
     runs = {seed: load_run(runs_root / f"seed{seed}") for seed in args.seeds}
     random = random_level(args, out, load_config(runs_root / f"seed{args.seeds[0]}").env_kwargs)
     for seed, run in runs.items():
@@ -545,6 +554,9 @@ def main() -> None:
         keep_record(runs_root / f"seed{seed}", out / f"seed{seed}_run")
     overrides = f" with {' '.join([*args.env_kwargs, *args.hyperparams])}" if args.env_kwargs or args.hyperparams else ""
     title = f"{task_name(args.env)} ({args.obs_type}), preset {args.preset}{overrides}, {len(runs)} seeds"
+    reached = sorted({int(run.sim_steps[-1]) for run in runs.values()})
+    if reached[0] < args.sim_steps:
+        title += f", stopped at {' and '.join(f'{steps:,}' for steps in reached)} of {args.sim_steps:,} simulator steps"
     multipliers = {seed: read_multiplier(runs_root / f"seed{seed}") for seed in args.seeds}
     plot_seeds(out / "curves.png", runs, random, multipliers, title)
     minutes = {seed: run_minutes(runs_root / f"seed{seed}") for seed in args.seeds}

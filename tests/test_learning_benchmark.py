@@ -94,6 +94,11 @@ def test_seeds_run_in_parallel_and_a_stopped_run_resumes(tmp_path) -> None:
         round(float(rewards.mean()), 2), round(float(costs.mean()), 1),
     ]  # fmt: skip
 
+    # --report-only: the seeds as they stand, none trained, the title saying where they stopped
+    output = run_benchmark(tmp_path, "0", "1", sim_steps=400, extra=("--report-only",))
+    assert "starting" not in output and "resuming" not in output
+    assert "stopped at 200 and 300 of 400 simulator steps" in (tmp_path / "table.md").read_text().splitlines()[0]
+
 
 def test_the_table_gives_the_normalised_scores_beside_the_thesis(monkeypatch) -> None:
     monkeypatch.syspath_prepend(str(REPO / "benchmarks"))

@@ -16,7 +16,7 @@
 # /tmp/gpu_check). Exit status: that of the checks (1 if one failed or timed out).
 set -uo pipefail
 
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 REPO=$(pwd)
 WHEELS=${WHEELS:-.whl}
 OUT_DIR=${OUT_DIR:-${OUT:-/tmp/gpu_check}}
