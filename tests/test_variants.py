@@ -99,7 +99,7 @@ def test_mean_cost_critic_starts_at_the_discounted_budget() -> None:
 
 
 def test_unknown_rules_list_the_valid_ones() -> None:
-    with pytest.raises(ValueError, match="sgd, episode, pid, critic"):
+    with pytest.raises(ValueError, match="'sgd' or 'episode' or 'pid' or 'critic'"):
         small_model(HazardPointEnv(), lagrange="adam")
     with pytest.raises(ValueError, match="'iqn'"):
         small_model(HazardPointEnv(), cost_critic="twin")
