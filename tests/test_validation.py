@@ -274,3 +274,9 @@ def test_the_zoo_stops_bad_input_before_its_log_folder(tmp_path: Path, capsys, m
         lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
         assert len(lines) == 1 and lines[0].startswith("error: ") and all(name in lines[0] for name in named), lines
     assert not (tmp_path / "logs").exists()
+
+
+def test_resume_refuses_the_flags_it_would_ignore(capsys, no_training, tmp_path) -> None:
+    error = refused(capsys, ["train", "--resume", str(tmp_path), "--seed", "3", "--threads", "2"], "--seed", "--threads")
+    assert "config.yaml" in error
+    refused(capsys, ["train", "--resume", str(tmp_path), "--hyperparams", "tau=0.01"], "--hyperparams")

@@ -254,8 +254,26 @@ def _experiment_fields(
     }
 
 
+# What ``train --resume`` takes besides the run folder: a new total of simulator steps, and how much it prints; the
+# run's own config.yaml holds every other setting
+RESUME_FLAGS = ("command", "resume", "sim_steps", "quiet", "no_progress_bar")
+
+
+def _check_resume_flags(args: argparse.Namespace) -> None:
+    """Refuse the flags that ``--resume`` would ignore, naming them, instead of continuing with other settings silently."""
+    defaults = vars(build_parser().parse_args(["train"]))
+    ignored = [name for name, value in vars(args).items() if name not in RESUME_FLAGS and value != defaults[name]]
+    if ignored:
+        flags = ", ".join(f"--{name.replace('_', '-')}" for name in ignored)
+        raise InputError(
+            f"{flags}: --resume continues {args.resume} with the settings of its {CONFIG_FILE}; drop them "
+            "(--sim-steps extends the run)"
+        )
+
+
 def _train_command(args: argparse.Namespace) -> None:
     if args.resume is not None:
+        _check_resume_flags(args)
         run_dir = resume(args.resume, sim_steps=args.sim_steps)
     else:
         if args.env is None:
