@@ -205,6 +205,7 @@ def test_evaluate_beliefs_and_plot_check_their_flags(tmp_path: Path, capsys) -> 
         refused(capsys, [command, str(model), "--env", TINY_ENV, "--seed", "-1"], "--seed")
     refused(capsys, ["evaluate", str(model), "--env", TINY_ENV, "--episodes", "0"], "--episodes")
     refused(capsys, ["evaluate", str(model), "--env", TINY_ENV, "--video-episodes", "-1"], "--video-episodes")
+    refused(capsys, ["evaluate", str(model), "--env", TINY_ENV, "--video", "agent.avi"], "--video", ".mp4 or .gif")
     refused(capsys, ["beliefs", str(model), "--env", TINY_ENV, "--frames", "0"], "--frames")
     refused(capsys, ["beliefs", str(model), "--env", TINY_ENV, "--steps", "0"], "--steps")
     refused(capsys, ["plot", str(tmp_path / "nope")], "nope")

@@ -31,6 +31,7 @@ from sb3_dsslac.common.validation import (
     positive_int,
     probe_env,
     seed,
+    video_file,
 )
 
 # DSSLAC keywords that get their own flag (``--learning-rate``); any other goes through ``--hyperparams key=value``
@@ -149,7 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     policy = eval_parser.add_mutually_exclusive_group()
     policy.add_argument("--stochastic", action="store_true", help="sample the filter and the action (the thesis's protocol)")
     policy.add_argument("--deterministic", action="store_true", help="the filter's means and the mean action")
-    eval_parser.add_argument("--video", help="video file (.mp4 or .gif)")
+    eval_parser.add_argument("--video", type=video_file, help="video file (.mp4 or .gif)")
     eval_parser.add_argument("--video-episodes", type=non_negative_int, default=1, help="episodes recorded into the video")
     eval_parser.add_argument("--obs-type", choices=["pixels", "state"])
     eval_parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (one this machine has)")

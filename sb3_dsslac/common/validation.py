@@ -474,6 +474,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+# The formats imageio writes the evaluation videos in
+VIDEO_SUFFIXES = (".mp4", ".gif")
+
+
+def video_file(text: str) -> str:
+    """An argparse type: a file name ending in one of ``VIDEO_SUFFIXES``."""
+    if Path(text).suffix.lower() not in VIDEO_SUFFIXES:
+        raise argparse.ArgumentTypeError(f"must be a {' or '.join(VIDEO_SUFFIXES)} file, got {text!r}")
+    return text
+
+
 def non_negative_int(text: str) -> int:
     """An argparse type: an integer >= 0."""
     value = _integer(text)
