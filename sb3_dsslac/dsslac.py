@@ -4,6 +4,7 @@ import io
 import math
 import pathlib
 import warnings
+from dataclasses import replace
 from typing import Any, ClassVar, TypeVar
 
 import torch as th
@@ -340,9 +341,18 @@ class DSSLAC(CostBudget, FilteredRollouts):
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.updates.step.optimizers)
         # Read at every burst, as SAC reads them at every update: a changed model.gamma or model.tau takes effect
-        # (a compiled update recompiles once for the new values; the same values keep the same config and graphs)
-        config = self.update_config(batch_size)
-        if config != self.updates.step.config:
+        # (a compiled update recompiles once for the new values; the same values keep the same config and graphs).
+        # The rest of the config (bf16 resolved against the device among it) is fixed when the model is set up
+        step_config = self.updates.step.config
+        config = replace(
+            step_config,
+            gamma=self.gamma,
+            cost_gamma=self.cost_gamma,
+            tau=self.tau,
+            batch_size=batch_size,
+            latent_batch_size=self.latent_batch_size,
+        )
+        if config != step_config:
             self.updates.step.config = config
         if not self.latent_pretrained:
             with self.time_account.measure("latent_pretraining"):
