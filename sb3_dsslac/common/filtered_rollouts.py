@@ -53,8 +53,7 @@ class FilteredRollouts(OffPolicyAlgorithm):
     ) -> tuple[int, BaseCallback]:
         envs_reset = reset_num_timesteps or self._last_obs is None
         if reset_num_timesteps:
-            self.total_cost = 0.0
-            self.ep_cost_buffer = deque(maxlen=self._stats_window_size)
+            self._init_rollout_state()
         result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
         assert self.env is not None
         if envs_reset or self._last_filter_state is None or len(self._episode_costs) != self.env.num_envs:
