@@ -281,3 +281,21 @@ def test_resume_refuses_the_flags_it_would_ignore(capsys, no_training, tmp_path)
     error = refused(capsys, ["train", "--resume", str(tmp_path), "--seed", "3", "--threads", "2"], "--seed", "--threads")
     assert "config.yaml" in error
     refused(capsys, ["train", "--resume", str(tmp_path), "--hyperparams", "tau=0.01"], "--hyperparams")
+
+
+def test_evaluate_and_beliefs_refuse_an_env_the_model_does_not_fit(tmp_path: Path, capsys) -> None:
+    model = tmp_path / "pixels.zip"
+    env = HazardPointEnv(obs_type="pixels", size=32)
+    DSSLAC("LatentPolicy", env, learning_starts=10, policy_kwargs={"z1_dim": 4, "z2_dim": 8}).save(model)
+    refused(capsys, ["evaluate", str(model), "--env", TINY_ENV], "--env", "--obs-type pixels")  # the env's state
+    smaller = ["--env", TINY_ENV, "--env-kwargs", "size=16"]
+    refused(capsys, ["evaluate", str(model), *smaller, "--obs-type", "pixels"], "16x16", "32x32", "width=32 height=32")
+    refused(capsys, ["beliefs", str(model), *smaller, "--out", str(tmp_path / "b.png")], "16x16", "32x32")
+    for command in ("evaluate", "beliefs"):
+        refused(capsys, [command, str(model), "--env", TINY_ENV, "--env-kwargs", "colour=red"], "--env-kwargs colour")
+    assert not (tmp_path / "b.png").exists()
+    # the keywords reach the env: the model runs where its frames fit
+    assert (
+        main(["evaluate", str(model), "--env", TINY_ENV, "--obs-type", "pixels", "--env-kwargs", "size=32", "--episodes", "1"])
+        == 0
+    )

@@ -8,7 +8,7 @@ import numpy as np
 import torch as th
 
 from sb3_dsslac.common.env_info import cost_from_info
-from sb3_dsslac.common.envs import make_env
+from sb3_dsslac.app.rollouts import make_model_env
 from sb3_dsslac.dsslac import DSSLAC
 
 
@@ -40,7 +40,7 @@ def episode_beliefs(
     the filter's belief about it, and the cost decoder's probability that the step costs.
 
     :param model: a DS-SLAC agent trained on image observations
-    :param env_id: the env (see ``make_env``), with 64x64x3 pixel observations
+    :param env_id: the env (see ``make_env``), with pixel observations of the model's frame size
     :param seed: seed of the episode's reset
     :param max_steps: stop after this many agent steps (None: the whole episode)
     :param deterministic: act and filter with means (False: sampled, as the thesis evaluates)
@@ -49,7 +49,7 @@ def episode_beliefs(
     policy = model.policy
     if len(policy.latent.observation_shape) != 3:
         raise ValueError(f"episode_beliefs needs an agent trained on images, this one sees {policy.latent.observation_shape}")
-    env = make_env(env_id, "pixels", env_kwargs=env_kwargs)
+    env = make_model_env(model, env_id, "pixels", env_kwargs=env_kwargs)
     policy.set_training_mode(False)
     frames, reconstructions, transitions, costs, rewards = [], [], [], [], []
     try:

@@ -86,6 +86,10 @@ def _preset_help() -> str:
     return "; ".join(lines)
 
 
+# ``--env-kwargs`` of the commands that run a saved model
+_RUN_ENV_KWARGS_HELP = "keywords of the env as YAML, on top of the model's run's where it ran on this env: width=32 height=32"
+
+
 def _add_model_flags(parser: argparse.ArgumentParser, threads_help: str) -> None:
     parser.add_argument("--preset", choices=list(PRESETS), default="thesis", help=_preset_help())
     parser.add_argument("--obs-type", choices=["pixels", "state"], help="observation type (default: the env's)")
@@ -153,6 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
     eval_parser.add_argument("--video", type=video_file, help="video file (.mp4 or .gif)")
     eval_parser.add_argument("--video-episodes", type=non_negative_int, default=1, help="episodes recorded into the video")
     eval_parser.add_argument("--obs-type", choices=["pixels", "state"])
+    eval_parser.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help=_RUN_ENV_KWARGS_HELP)
     eval_parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (one this machine has)")
 
     beliefs_parser = commands.add_parser(
@@ -160,6 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     beliefs_parser.add_argument("model", help="a saved model (.zip) trained on pixels", metavar="MODEL")
     beliefs_parser.add_argument("--env", help="env id (default: the model's run's)")
+    beliefs_parser.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", help=_RUN_ENV_KWARGS_HELP)
     beliefs_parser.add_argument("--seed", type=seed, default=0, help="seed of the episode")
     beliefs_parser.add_argument("--steps", type=positive_int, help="agent steps to run (default: the whole episode)")
     beliefs_parser.add_argument("--frames", type=positive_int, default=10, help="frames shown")
@@ -311,24 +317,30 @@ def _plot_command(args: argparse.Namespace) -> None:
     print(report(args.runs, args.out))
 
 
-def _model_and_run(args: argparse.Namespace) -> tuple[str, TrainConfig | None, bool]:
+def _model_and_run(args: argparse.Namespace) -> tuple[str, TrainConfig | None, bool, dict[str, Any]]:
     """
-    The env id of ``args.model`` (``--env``, else its run's), its run's config if any, and whether that run used this
-    env; the model file, ``--device`` and ``--env`` checked first.
+    The env id of ``args.model`` (``--env``, else its run's), its run's config if any, whether that run used this
+    env, and the env keywords to run it with (the run's where it used this env, ``--env-kwargs`` on top); the model
+    file, ``--device``, ``--env`` and ``--env-kwargs`` checked first.
     """
     check_model_file(args.model)
     check_device(args.device)
-    if args.env is not None:
-        check_env_id(args.env)
+    spec = check_env_id(args.env) if args.env is not None else None
+    given = parse_hyperparams(args.env_kwargs, flag="--env-kwargs")
     run_config = find_run_config(Path(args.model))
     if args.env is None and run_config is None:
         raise InputError(f"MODEL {args.model} is not in a run folder (no {CONFIG_FILE} beside it): pass the env id (--env)")
     env_id = args.env or run_config.env  # type: ignore[union-attr]
-    return env_id, run_config, run_config is not None and run_config.env == env_id
+    same_env = run_config is not None and run_config.env == env_id
+    env_kwargs = {**(run_config.env_kwargs if same_env else {}), **given}  # type: ignore[union-attr]
+    sources = {name: f"the run's env keyword {name}" for name in env_kwargs}
+    sources.update({name: f"--env-kwargs {name}" for name in given})
+    check_env_kwargs(spec or check_env_id(env_id), env_kwargs, sources)
+    return env_id, run_config, same_env, env_kwargs
 
 
 def _evaluate_command(args: argparse.Namespace) -> None:
-    env_id, run_config, same_env = _model_and_run(args)
+    env_id, run_config, same_env, env_kwargs = _model_and_run(args)
     if args.deterministic or args.stochastic:
         deterministic = args.deterministic
     else:  # the protocol of the model's run, else the thesis's
@@ -343,7 +355,7 @@ def _evaluate_command(args: argparse.Namespace) -> None:
         video=args.video,
         video_episodes=args.video_episodes,
         obs_type=args.obs_type or (run_config.obs_type if same_env else None),  # type: ignore[union-attr]
-        env_kwargs=run_config.env_kwargs if same_env else None,  # type: ignore[union-attr]
+        env_kwargs=env_kwargs,
     )
     print(format_episodes(results, model.cost_limit, deterministic))
     if args.video:
@@ -353,7 +365,7 @@ def _evaluate_command(args: argparse.Namespace) -> None:
 def _beliefs_command(args: argparse.Namespace) -> None:
     from sb3_dsslac.app.beliefs import episode_beliefs, mean_cost_probabilities, plot_beliefs
 
-    env_id, run_config, same_env = _model_and_run(args)
+    env_id, _, _, env_kwargs = _model_and_run(args)
     model = DSSLAC.load(args.model, device=args.device)
     beliefs = episode_beliefs(
         model,
@@ -361,7 +373,7 @@ def _beliefs_command(args: argparse.Namespace) -> None:
         seed=args.seed,
         max_steps=args.steps,
         deterministic=not args.stochastic,
-        env_kwargs=run_config.env_kwargs if same_env else None,  # type: ignore[union-attr]
+        env_kwargs=env_kwargs,
     )
     path = plot_beliefs(beliefs, args.out, n_frames=args.frames)
     on_costly, on_free = mean_cost_probabilities(beliefs)

@@ -3,12 +3,14 @@
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 from tqdm.auto import tqdm
 
 from sb3_dsslac.common.env_info import cost_from_info
 from sb3_dsslac.common.envs import make_env
 from sb3_dsslac.common.evaluation import EpisodeResults, eval_policy_name
+from sb3_dsslac.common.validation import InputError, check_env_fits_model
 from sb3_dsslac.dsslac import DSSLAC
 
 
@@ -27,6 +29,24 @@ def side_by_side(observation: np.ndarray, view: np.ndarray) -> np.ndarray:
     pad = view.shape[0] - upscaled.shape[0]
     upscaled = np.pad(upscaled, ((0, max(pad, 0)), (0, 0), (0, 0)))[: view.shape[0]]
     return np.concatenate([upscaled, view], axis=1)
+
+
+def make_model_env(
+    model: DSSLAC,
+    env_id: str,
+    obs_type: str | None = None,
+    render_mode: str | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+) -> gym.Env:
+    """``make_env`` for a saved model: an env whose observations and actions differ from the model's is refused
+    (``check_env_fits_model``) before any episode."""
+    env = make_env(env_id, obs_type, render_mode=render_mode, env_kwargs=env_kwargs)
+    try:
+        check_env_fits_model(env, model.observation_space, model.action_space, env_id)
+    except InputError:
+        env.close()
+        raise
+    return env
 
 
 def evaluate(
@@ -55,7 +75,7 @@ def evaluate(
     :param env_kwargs: other keywords of the env
     :return: per-episode rewards, costs and lengths (agent steps)
     """
-    env = make_env(env_id, obs_type, render_mode="rgb_array" if video else None, env_kwargs=env_kwargs)
+    env = make_model_env(model, env_id, obs_type, render_mode="rgb_array" if video else None, env_kwargs=env_kwargs)
     writer = None
     if video is not None:
         import imageio

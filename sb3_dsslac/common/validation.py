@@ -24,6 +24,7 @@ import gymnasium as gym
 from gymnasium import spaces
 import numpy as np
 import torch as th
+from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
 
 from sb3_dsslac.common.env_info import cost_from_info
 from sb3_dsslac.common.envs import make_env
@@ -513,4 +514,40 @@ def check_spaces(observation_space: spaces.Space, action_space: spaces.Space) ->
             f"DS-SLAC encodes Box images (C, H, W) or flat Box vectors, got {observation_space}. "
             "For safety_envs use obs_type='pixels' or obs_type='state'; "
             "flatten or select Dict observations with a wrapper."
+        )
+
+
+def _model_view(space: spaces.Space) -> tuple[int, ...]:
+    """The shape a model sees of an observation space: images channels first, as SB3's VecTransposeImage gives them."""
+    shape = tuple(space.shape or ())
+    if is_image_space(space, check_channels=False) and not is_image_space_channels_first(space):  # type: ignore[arg-type]
+        return (shape[2], shape[0], shape[1])
+    return shape
+
+
+def check_env_fits_model(env: gym.Env, observation_space: spaces.Space, action_space: spaces.Space, env_id: str) -> None:
+    """
+    Check that an env gives the observations and takes the actions a saved model was trained on, before any episode.
+
+    :param env: the env the model is about to run in
+    :param observation_space: the model's (images channels first)
+    :param action_space: the model's
+    :param env_id: the env's id, for the message
+    :raises InputError: saying what differs and which env keywords would make the env fit
+    """
+    seen, trained = _model_view(env.observation_space), tuple(observation_space.shape or ())
+    if seen != trained:
+        if len(seen) == 3 and len(trained) == 3:
+            fix = (
+                f"its frames are {seen[2]}x{seen[1]}, the model's {trained[2]}x{trained[1]} "
+                f"(a safety_envs task makes them with --env-kwargs width={trained[2]} height={trained[1]})"
+            )
+        else:
+            kind = "pixels" if len(trained) == 3 else "state"
+            fix = f"the model was trained on {kind} (--obs-type {kind})"
+        raise InputError(f"--env {env_id}: observations of shape {seen} (channels first) against the model's {trained}: {fix}")
+    if env.action_space.shape != action_space.shape:
+        raise InputError(
+            f"--env {env_id}: it takes actions of shape {env.action_space.shape}, the model gives {action_space.shape} "
+            "(another robot?)"
         )
