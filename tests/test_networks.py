@@ -363,3 +363,47 @@ def test_latent_bounds_keep_latents_and_kl_bounded_when_the_networks_run_away():
 def test_latent_bounds_are_checked(kwargs, message):
     with pytest.raises(ValueError, match=message):
         make_model((5,), **kwargs)
+
+
+def _kl_gradients(model: LatentModel, batch: tuple[torch.Tensor, ...]) -> tuple[float, dict[str, torch.Tensor]]:
+    """The KL term of one loss on ``batch`` and its gradient on the prior's and the posterior's parameters."""
+    model.zero_grad()
+    torch.manual_seed(1)
+    _, terms = model.loss(*batch)
+    # the KL alone: rerun the rollout with the same noise and take its KL term with gradient
+    torch.manual_seed(1)
+    features = model.encode(batch[0])
+    rollout = model.posterior(features, batch[1])
+    prior_mean, prior_std = model.z1_prior(rollout.z2[:, :-1], batch[1])
+    prior_mean = torch.nn.functional.pad(prior_mean, (0, 0, 1, 0))
+    prior_std = torch.nn.functional.pad(prior_std, (0, 0, 1, 0), value=1.0)
+    kl = model._kl(rollout.z1_mean, rollout.z1_std, prior_mean, prior_std)
+    kl.backward()
+    parts = {"prior": model.z1_prior, "posterior": model.z1_posterior}
+    return terms["kl"].item(), {name: torch.cat([p.grad.flatten() for p in part.parameters()]) for name, part in parts.items()}
+
+
+def test_kl_balance_keeps_the_kl_and_splits_its_gradient_between_prior_and_posterior():
+    batch = make_batch((5,))
+    results = {}
+    for balance in (None, 0.0, 0.5, 0.8, 1.0):
+        torch.manual_seed(0)
+        results[balance] = _kl_gradients(make_model((5,), kl_balance=balance), batch)
+    plain_kl, plain = results[None]
+    for balance in (0.0, 0.5, 0.8, 1.0):
+        kl, gradients = results[balance]
+        assert kl == pytest.approx(plain_kl, rel=1e-6)  # the same value, logged as before
+        # the prior's own parameters see the KL only through p: the share of its gradient
+        torch.testing.assert_close(gradients["prior"], balance * plain["prior"], rtol=1e-4, atol=1e-6)
+    assert results[0.0][1]["prior"].abs().max() == 0
+    # the posterior's: (1 - share) of the gradient through q, the share of the one through p's input z2; 0.5 halves both
+    torch.testing.assert_close(results[0.5][1]["posterior"], 0.5 * plain["posterior"], rtol=1e-4, atol=1e-6)
+    mixed = 0.8 * results[1.0][1]["posterior"] + 0.2 * results[0.0][1]["posterior"]
+    torch.testing.assert_close(results[0.8][1]["posterior"], mixed, rtol=1e-4, atol=1e-6)
+    assert (results[0.0][1]["posterior"] - plain["posterior"]).abs().max() > 1e-3  # the path through p is cut
+
+
+@pytest.mark.parametrize("balance", [-0.1, 1.5])
+def test_kl_balance_is_a_share(balance):
+    with pytest.raises(ValueError, match="kl_balance"):
+        make_model((5,), kl_balance=balance)

@@ -49,6 +49,8 @@ class LatentPolicy(BasePolicy):
     :param latent_max_std: the ceiling on their std (None, the thesis code's: none)
     :param latent_mean_bound: the bound on their means' absolute value (None, the thesis code's: none). With a ceiling
         and a bound the latents cannot run away (see ``GaussianBounds``)
+    :param latent_kl_balance: None (the thesis's) or the share of the KL's gradient that trains the prior
+        (``LatentModel``'s ``kl_balance``; 0.8 in LAMBDA)
     :param latent_learning_rate: Adam step size of the latent model
     :param normalize_images: divide uint8 images by 255
     :param normalize_vectors: standardise vector observations with the mean and std of the warm-up data (set once by
@@ -87,6 +89,7 @@ class LatentPolicy(BasePolicy):
         latent_min_std: float = STD_EPS,
         latent_max_std: float | None = None,
         latent_mean_bound: float | None = None,
+        latent_kl_balance: float | None = None,
         latent_learning_rate: float = 1e-4,
         normalize_images: bool = True,
         normalize_vectors: bool = True,
@@ -120,6 +123,7 @@ class LatentPolicy(BasePolicy):
         self.latent_min_std = latent_min_std
         self.latent_max_std = latent_max_std
         self.latent_mean_bound = latent_mean_bound
+        self.latent_kl_balance = latent_kl_balance
         self.latent_learning_rate = latent_learning_rate
         self.normalize_vectors = normalize_vectors
         self._scale_images = normalize_images and is_image_space(observation_space)
@@ -145,6 +149,7 @@ class LatentPolicy(BasePolicy):
             min_std=self.latent_min_std,
             max_std=self.latent_max_std,
             mean_bound=self.latent_mean_bound,
+            kl_balance=self.latent_kl_balance,
         )
         z_dim = self.latent.z_dim
         self.actor = LatentActor(z_dim, self.action_dim, self.hidden_units)
@@ -189,6 +194,7 @@ class LatentPolicy(BasePolicy):
                 latent_min_std=self.latent_min_std,
                 latent_max_std=self.latent_max_std,
                 latent_mean_bound=self.latent_mean_bound,
+                latent_kl_balance=self.latent_kl_balance,
                 latent_learning_rate=self.latent_learning_rate,
                 normalize_vectors=self.normalize_vectors,
                 optimizer_class=self.optimizer_class,

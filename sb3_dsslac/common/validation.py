@@ -156,6 +156,7 @@ RANGES: dict[str, Check] = {
     "latent_min_std": _POSITIVE,
     "latent_max_std": _POSITIVE,
     "latent_mean_bound": _POSITIVE,
+    "latent_kl_balance": _numbers(0, 1),
 }
 
 

@@ -184,6 +184,10 @@ class LatentModel(nn.Module):
     :param max_std: the ceiling on their std (None in the reference code: ``softplus(raw) + min_std``, unbounded)
     :param mean_bound: the bound on their means' absolute value (None in the reference code). With both bounds every
         latent stays within ``mean_bound + max_std * |noise|`` (``GaussianBounds``)
+    :param kl_balance: None (the thesis's) trains prior and posterior on the KL alike; a share ``alpha`` in [0, 1]
+        splits its gradient, ``alpha * KL(sg(q) || p) + (1 - alpha) * KL(q || sg(p))`` (DreamerV2's KL balancing, 0.8
+        in LAMBDA): the same value, the prior pulled toward the posterior more than the posterior toward the prior,
+        so that what a frame shows is kept in the belief against the KL (0.5 halves the plain KL's gradient)
     """
 
     def __init__(
@@ -202,8 +206,12 @@ class LatentModel(nn.Module):
         min_std: float = STD_EPS,
         max_std: float | None = None,
         mean_bound: float | None = None,
+        kl_balance: float | None = None,
     ) -> None:
         super().__init__()
+        if kl_balance is not None and not 0.0 <= kl_balance <= 1.0:
+            raise ValueError(f"kl_balance must be None or a share in [0, 1], got {kl_balance}")
+        self.kl_balance = kl_balance
         self.image_channels = tuple(int(width) for width in image_channels)
         if len(self.image_channels) != 4 or min(self.image_channels) < 1:
             raise ValueError(
@@ -341,6 +349,14 @@ class LatentModel(nn.Module):
                 f"actions must be (B, T, A) = ({batch}, {frames - 1}, {self.action_dim}), got {tuple(actions.shape)}"
             )
 
+    def _kl(self, mean_q: Tensor, std_q: Tensor, mean_p: Tensor, std_p: Tensor) -> Tensor:
+        """KL(q || p) of (B, T+1, Z1) Gaussians summed over time and z1, mean over the batch; balanced by ``kl_balance``."""
+        if self.kl_balance is None:
+            return gaussian_kl(mean_q, std_q, mean_p, std_p).sum(dim=(1, 2)).mean()
+        to_prior = gaussian_kl(mean_q.detach(), std_q.detach(), mean_p, std_p)
+        to_posterior = gaussian_kl(mean_q, std_q, mean_p.detach(), std_p.detach())
+        return (self.kl_balance * to_prior + (1.0 - self.kl_balance) * to_posterior).sum(dim=(1, 2)).mean()
+
     def loss(
         self,
         observations: Tensor,
@@ -416,7 +432,7 @@ class LatentModel(nn.Module):
         # N(0, 1) at t = 0, padded in front: one op each, where a cat with a filled slice takes three
         prior_mean = F.pad(prior_mean, (0, 0, 1, 0))
         prior_std = F.pad(prior_std, (0, 0, 1, 0), value=1.0)
-        kl = gaussian_kl(z1_mean, z1_std, prior_mean, prior_std).sum(dim=(1, 2)).mean()
+        kl = self._kl(z1_mean, z1_std, prior_mean, prior_std)
 
         reconstruction = self.decode(z)
         image_loss = fixed_std_gaussian_nll(observations, reconstruction, self.image_std)
