@@ -172,3 +172,30 @@ def test_the_reward_split_counts_the_steps_of_each_condition(benchmarks) -> None
     assert split["goal in the field of view"]["reward per step"] == pytest.approx(1.0 / 3)
     assert split["in the field of view, no goal pixel"]["share of steps"] == 0.25
     assert reward_split([episode], (64, 64))["goal in view (goal_view's rule)"]["share of steps"] == 0.25
+
+
+def test_the_searching_agent_searches_after_n_frames_without_the_goal_and_tells_its_filter(benchmarks) -> None:
+    from reward_by_view import SearchingAgent
+
+    class Policy:
+        def scale_action(self, action: np.ndarray) -> np.ndarray:
+            return action * 10.0
+
+    class Model:
+        policy = Policy()
+
+        def predict(self, frame, state, episode_start, deterministic):
+            steps = 0 if state is None else state[0] + 1
+            return np.array([0.5, 0.5], dtype=np.float32), (steps, np.array([[0.5, 0.5]]))
+
+    goal = frame_with({(0, 200, 0): (slice(10, 14), slice(10, 14))})
+    empty = frame_with({})
+    agent = SearchingAgent(Model(), lambda frame: np.array([0.0, 0.1], dtype=np.float32), after=2)
+    assert agent(empty).tolist() == [0.5, 0.5]  # one frame without the goal: still the agent's
+    searched = agent(empty)
+    assert searched.tolist() == pytest.approx([0.0, 0.1])
+    assert agent.state[0] == 1 and agent.state[1][0].tolist() == pytest.approx([0.0, 1.0])  # the action taken, scaled
+    assert agent(goal).tolist() == [0.5, 0.5]
+    agent(empty)
+    agent.reset()
+    assert agent.state is None and agent(empty).tolist() == [0.5, 0.5]

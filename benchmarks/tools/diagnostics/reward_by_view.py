@@ -7,6 +7,11 @@ horizontal field of view (from the simulator state). The same env settings (the 
     python benchmarks/tools/diagnostics/reward_by_view.py runs/<run>                  # its model.zip (or newest checkpoint)
     python benchmarks/tools/diagnostics/reward_by_view.py runs/<run>/model.zip --episodes 10
     python benchmarks/tools/diagnostics/reward_by_view.py --env SafetyGym/PointGoal1-v0 --size 32   # the script alone
+    python benchmarks/tools/diagnostics/reward_by_view.py runs/<run> --search-after 1 4   # + the agent with a search
+
+``--search-after N``: the trained agent again, its actions replaced by the script's search (turn left in place) once
+the goal has been out of view for N frames in a row, until it shows again; its filter is told the action taken. What
+the agent would earn if it looked for the goal as the script does, at its own skill while the goal is in view.
 
 "Otherwise": the reward per step on the other steps. "Share of the reward": the part of the episodes' total reward
 earned on the condition's steps (above 100% where the other steps lose reward; n/a where the total is not positive).
@@ -23,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import numpy as np
 import torch as th
 from ceiling import ACTION_REPEAT, CONTROLLERS, Episode, controller_for, run_episode
-from goal_view import min_pixels
+from goal_view import goal_mask, in_view, min_pixels
 from machine import cpu_model
 
 from sb3_dsslac import DSSLAC
@@ -45,6 +50,31 @@ class ModelAgent:
 
     def __call__(self, frame: np.ndarray) -> np.ndarray:
         action, self.state = self.model.predict(frame, self.state, np.zeros(1, dtype=bool), self.deterministic)
+        return action
+
+
+class SearchingAgent(ModelAgent):
+    """
+    ``ModelAgent`` whose action is ``search``'s once the goal has been out of view for ``after`` frames in a row, until
+    it shows again; the filter's last action is the one taken.
+    """
+
+    def __init__(self, model: DSSLAC, search: Callable[[np.ndarray], np.ndarray], after: int, deterministic: bool = False):
+        super().__init__(model, deterministic)
+        self.search, self.after, self.out_of_view = search, after, 0
+
+    def reset(self) -> None:
+        super().reset()
+        self.out_of_view = 0
+
+    def __call__(self, frame: np.ndarray) -> np.ndarray:
+        action = super().__call__(frame)
+        self.out_of_view = 0 if in_view(goal_mask(frame)) else self.out_of_view + 1
+        if self.out_of_view < self.after:
+            return action
+        assert self.state is not None
+        action = self.search(frame)
+        self.state = (self.state[0], self.model.policy.scale_action(action)[None])
         return action
 
 
@@ -127,9 +157,19 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=5)
     parser.add_argument("--episode-seed", type=int, default=10_000, help="reset seed of the first episode (+1 each)")
     parser.add_argument("--deterministic", action="store_true", help="the agent's mean action and filter means")
+    parser.add_argument(
+        "--search-after",
+        type=int,
+        nargs="*",
+        default=[],
+        metavar="N",
+        help="with a model: also the agent searching as the script once the goal is out of view N frames",
+    )
     args = parser.parse_args()
     if args.episodes < 1:
         parser.error("--episodes must be positive")
+    if any(after < 1 for after in args.search_after) or (args.search_after and args.model is None):
+        parser.error("--search-after takes positive frame counts and a model")
     agents: dict[str, Callable[[np.ndarray], np.ndarray]] = {}
     if args.model is not None:
         th.set_num_threads(1)
@@ -141,6 +181,11 @@ def main() -> None:
     seeds = range(args.episode_seed, args.episode_seed + args.episodes)
     try:
         env.reset(seed=seeds[0])
+        seek = controller_for(env, "seek")
+        for after in args.search_after:
+            agents[f"trained, the script's search after {after} frames out of view"] = SearchingAgent(
+                model, seek, after, args.deterministic
+            )
         agents.update({f"script ({name})": controller_for(env, name) for name in CONTROLLERS})
         size = env.observation_space.shape[:2]
         print(f"{env_id} {env_kwargs}, {args.episodes} episodes (reset seeds from {args.episode_seed}); {cpu_model()}\n")
