@@ -131,7 +131,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     # - 8 quantile fractions instead of 32: the IQN cost critic runs on 4x the rows, and 8 keep the update's cost at
     #   1.01x the preset's (32 ran at 0.74x);
     # - the PID multiplier (kp 0.004, ki 1e-4, kd 0) on the smoothed episode cost, aiming at 20: it held at 0.35-0.5
-    #   from 150k where the SGD rule's rose to 1.24 and pressed the reward back down
+    #   from 150k where the SGD rule's rose to 1.24 and pressed the reward back down.
+    # The update costs cpu_pixels32_bounded's: 109-110 CPU minutes per 300k simulator steps on an AMD EPYC host that ran
+    # it at 14.8 updates/s (about 50 on the host behind cpu_pixels32_bounded's table, which ran it at 35)
     "cpu_pixels32_pid": {
         **CPU_PIXELS32_BOUNDED,
         "actor_critic_transitions": 4,
