@@ -199,3 +199,27 @@ def test_the_searching_agent_searches_after_n_frames_without_the_goal_and_tells_
     agent(empty)
     agent.reset()
     assert agent.state is None and agent(empty).tolist() == [0.5, 0.5]
+
+
+def test_search_values_scores_the_agents_action_and_each_alternative_with_the_critics_minimum(benchmarks) -> None:
+    import gymnasium as gym
+    import torch as th
+    from search_values import ALTERNATIVES, episode_values
+
+    from sb3_dsslac import DSSLAC, preset_hyperparams
+
+    env = gym.make("SafetyGym/PointGoal1-v0", width=32, height=32, action_repeat=4, max_episode_steps=12)
+    hyperparams = preset_hyperparams("cpu", {"policy_kwargs": {"image_channels": (4, 8, 8, 16)}})
+    model = DSSLAC("LatentPolicy", env, seed=0, **hyperparams)
+
+    def critic(z: th.Tensor, actions: th.Tensor) -> th.Tensor:  # Q1 = the turn command, Q2 = Q1 - 1: the minimum is Q2
+        turn = actions[:, 1:]
+        return th.stack([turn, turn - 1.0])
+
+    model.policy.critic.forward = critic
+    gone, values = episode_values(model, env, seed=3)
+    env.close()
+    assert gone.shape == (12,) and values.shape == (12, 1 + len(ALTERNATIVES))
+    assert (gone[1:] == 0).sum() + (np.diff(gone) == 1).sum() == 11  # each step: back in view, or one frame longer gone
+    assert values[:, 1:] == pytest.approx(np.tile([0.0, -2.0, -1.0], (12, 1)))  # left, right, straight (scaled turn 1, -1, 0)
+    assert ((values[:, 0] >= -2.0) & (values[:, 0] <= 0.0)).all()  # the agent's own turn, in [-1, 1], minus 1
