@@ -181,12 +181,12 @@ def main() -> None:
     seeds = range(args.episode_seed, args.episode_seed + args.episodes)
     try:
         env.reset(seed=seeds[0])
-        seek = controller_for(env, "seek")
+        scripts = {name: controller_for(env, name) for name in CONTROLLERS}
         for after in args.search_after:
             agents[f"trained, the script's search after {after} frames out of view"] = SearchingAgent(
-                model, seek, after, args.deterministic
+                model, scripts["seek"], after, args.deterministic
             )
-        agents.update({f"script ({name})": controller_for(env, name) for name in CONTROLLERS})
+        agents.update({f"script ({name})": script for name, script in scripts.items()})
         size = env.observation_space.shape[:2]
         print(f"{env_id} {env_kwargs}, {args.episodes} episodes (reset seeds from {args.episode_seed}); {cpu_model()}\n")
         print(TABLE_HEADER)
