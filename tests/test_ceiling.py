@@ -201,6 +201,12 @@ def test_the_searching_agent_searches_after_n_frames_without_the_goal_and_tells_
     assert agent.state is None and agent(empty).tolist() == [0.5, 0.5]
 
 
+def test_same_way_as_before_compares_each_turns_sign_with_the_previous_steps(benchmarks) -> None:
+    from search_values import same_way_as_before
+
+    assert same_way_as_before(np.array([0.5, 0.9, -0.1, -0.7, 0.2])).tolist() == [False, True, False, True, False]
+
+
 def test_search_values_scores_the_agents_action_and_each_alternative_with_the_critics_minimum(benchmarks) -> None:
     import gymnasium as gym
     import torch as th
@@ -217,9 +223,11 @@ def test_search_values_scores_the_agents_action_and_each_alternative_with_the_cr
         return th.stack([turn, turn - 1.0])
 
     model.policy.critic.forward = critic
-    gone, values = episode_values(model, env, seed=3)
+    episode = episode_values(model, env, seed=3)
     env.close()
-    assert gone.shape == (12,) and values.shape == (12, 1 + len(ALTERNATIVES))
+    gone, values, actions = episode.gone, episode.values, episode.actions
+    assert gone.shape == (12,) and values.shape == (12, 1 + len(ALTERNATIVES)) and episode.mean_actions.shape == (12, 2)
+    assert (np.abs(actions) <= 1.0).all() and (np.abs(episode.mean_actions) <= 1.0).all()  # Point units, in [-1, 1]
     assert (gone[1:] == 0).sum() + (np.diff(gone) == 1).sum() == 11  # each step: back in view, or one frame longer gone
     assert values[:, 1:] == pytest.approx(np.tile([0.0, -2.0, -1.0], (12, 1)))  # left, right, straight (scaled turn 1, -1, 0)
-    assert ((values[:, 0] >= -2.0) & (values[:, 0] <= 0.0)).all()  # the agent's own turn, in [-1, 1], minus 1
+    assert values[:, 0] == pytest.approx(actions[:, 1] - 1.0, abs=1e-5)  # the agent's own turn (Point units = scaled) minus 1

@@ -3,7 +3,9 @@ Does a Point agent's reward critic know that looking for a lost goal pays? Along
 policy (filtered online as it acts), this scores with the twin critic's minimum Q(z, a) the action the agent took and
 three one-step alternatives on the same belief z: turning in place to the left (the script's search of
 ``benchmarks/ceiling.py``), to the right, and driving straight ahead at full speed. Steps are split by whether the goal
-is in the frame (``goal_view``'s rule) and, when it is not, for how many frames it has been gone.
+is in the frame (``goal_view``'s rule) and, when it is not, for how many frames it has been gone. Beside them, what the
+agent does there: its mean forward force, its turn rate (mean and mean magnitude) and how often it turns the same way
+as the step before (the script's search always does), for the actions it took and for its actor's means.
 
 A search action scored above the agent's own where the goal has been gone a while means the critic would move the
 actor toward searching and the actor does not follow; scored below, the critic itself does not value a turn that is
@@ -16,6 +18,7 @@ followed by the agent's own behaviour (a one-step deviation cannot find a search
 import argparse
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 # The benchmarks' shared modules (ceiling.py, goal_view.py, machine.py) and reward_by_view.py
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
@@ -46,20 +49,24 @@ GONE_FOR = {
 }
 
 
-def episode_values(model: DSSLAC, env, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """
-    One episode of the agent's stochastic policy from ``env.reset(seed=seed)``.
+class EpisodeValues(NamedTuple):
+    """One episode of ``T`` agent steps of the agent's stochastic policy."""
 
-    :return: (T,) frames since the goal was last in view (0: in view), and (T, 1 + len(ALTERNATIVES)) the critic's
-        min Q of the agent's action, then of each alternative, on the belief the agent acted on
-    """
+    gone: np.ndarray  # (T,) frames since the goal was last in view (0: in view)
+    values: np.ndarray  # (T, 1 + len(ALTERNATIVES)) min Q of the agent's action, then of each alternative, same belief
+    actions: np.ndarray  # (T, 2) the actions taken, in the Point's units (forward force, turn rate)
+    mean_actions: np.ndarray  # (T, 2) the actor's means (tanh of the Gaussian's mean) on the same beliefs, same units
+
+
+def episode_values(model: DSSLAC, env, seed: int) -> EpisodeValues:
+    """One episode of the agent's stochastic policy from ``env.reset(seed=seed)``, filtered online as it acts."""
     policy = model.policy
     policy.set_training_mode(False)
     alternatives = th.as_tensor(policy.scale_action(np.array(list(ALTERNATIVES.values()), dtype=np.float32))).float()
     frame, _ = env.reset(seed=seed)
     z2, action = policy.initial_state(1)
     start = th.ones(1, dtype=th.bool)
-    gone, values = [], []
+    gone, values, actions, mean_actions = [], [], [], []
     since, done = 10**9, False
     while not done:
         since = 0 if in_view(goal_mask(frame)) else since + 1
@@ -69,12 +76,20 @@ def episode_values(model: DSSLAC, env, seed: int) -> tuple[np.ndarray, np.ndarra
             action = policy.actor(z, deterministic=False)
             candidates = th.cat([action, alternatives])
             q_values = policy.critic(z.expand(len(candidates), -1), candidates).min(dim=0).values.squeeze(-1)
+            mean_action = policy.actor(z, deterministic=True)
         gone.append(since)
         values.append(q_values.numpy())
-        frame, _, terminated, truncated, _ = env.step(policy.unscale_action(action.numpy())[0])
+        mean_actions.append(policy.unscale_action(mean_action.numpy())[0])
+        actions.append(policy.unscale_action(action.numpy())[0])
+        frame, _, terminated, truncated, _ = env.step(actions[-1])
         start = th.zeros(1, dtype=th.bool)
         done = terminated or truncated
-    return np.array(gone), np.array(values)
+    return EpisodeValues(np.array(gone), np.array(values), np.array(actions), np.array(mean_actions))
+
+
+def same_way_as_before(turns: np.ndarray) -> np.ndarray:
+    """(T,) turn rates -> (T,) whether each turns the same way as the step before (False for the first step)."""
+    return np.r_[False, np.sign(turns[1:]) == np.sign(turns[:-1])]
 
 
 def main() -> None:
@@ -94,8 +109,12 @@ def main() -> None:
         episodes = [episode_values(model, env, seed) for seed in range(args.episode_seed, args.episode_seed + args.episodes)]
     finally:
         env.close()
-    gone = np.concatenate([episode[0] for episode in episodes])
-    values = np.concatenate([episode[1] for episode in episodes])
+    gone, values, actions, mean_actions = (np.concatenate(parts) for parts in zip(*episodes, strict=True))
+    same_turn = np.concatenate([same_way_as_before(episode.actions[:, 1]) for episode in episodes])
+    same_mean_turn = np.concatenate([same_way_as_before(episode.mean_actions[:, 1]) for episode in episodes])
+    has_previous = np.concatenate([np.arange(len(episode.gone)) > 0 for episode in episodes])
+    groups = {group: (gone >= low) & (gone <= high) for group, (low, high) in GONE_FOR.items()}
+    groups = {group: rows for group, rows in groups.items() if rows.any()}
     print(f"{args.run}: {args.episodes} episodes ({len(gone)} steps) of its stochastic policy on {env_id}; {cpu_model()}\n")
     names = list(ALTERNATIVES)
     print(
@@ -104,15 +123,23 @@ def main() -> None:
         + " |\n|---|---:|---:|"
         + "---:|" * len(names)
     )
-    for group, (low, high) in GONE_FOR.items():
-        rows = (gone >= low) & (gone <= high)
-        if not rows.any():
-            continue
+    for group, rows in groups.items():
         own = values[rows, 0]
         cells = [
             f"{(values[rows, k + 1] - own).mean():+.3f} ({(values[rows, k + 1] > own).mean():.0%})" for k in range(len(names))
         ]
         print(f"| {group} | {rows.mean():.0%} | {own.mean():.3f} | " + " | ".join(cells) + " |")
+    print(
+        "\nWhat it does there (Point units in [-1, 1]; the script's search turns at 1, always the same way):\n\n"
+        "| steps | forward force, mean | turn rate: mean, mean magnitude | turns as the step before | "
+        "the actor's mean turn: mean magnitude | ... turns as the step before |\n|---|---:|---:|---:|---:|---:|"
+    )
+    for group, rows in groups.items():
+        turn, mean_turn, counted = actions[rows, 1], mean_actions[rows, 1], rows & has_previous
+        print(
+            f"| {group} | {actions[rows, 0].mean():+.2f} | {turn.mean():+.2f}, {np.abs(turn).mean():.2f} | "
+            f"{same_turn[counted].mean():.0%} | {np.abs(mean_turn).mean():.2f} | {same_mean_turn[counted].mean():.0%} |"
+        )
 
 
 if __name__ == "__main__":
