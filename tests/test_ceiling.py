@@ -201,6 +201,31 @@ def test_the_searching_agent_searches_after_n_frames_without_the_goal_and_tells_
     assert agent.state is None and agent(empty).tolist() == [0.5, 0.5]
 
 
+def test_the_turn_keeping_agent_holds_its_first_turns_direction_until_the_goal_shows(benchmarks) -> None:
+    from reward_by_view import TurnKeepingAgent
+
+    turns = iter([0.3, -0.6, 0.8, -0.2, -0.4, 0.7, 0.5])
+
+    class Policy:
+        def scale_action(self, action: np.ndarray) -> np.ndarray:
+            return action
+
+    class Model:
+        policy = Policy()
+
+        def predict(self, frame, state, episode_start, deterministic):
+            action = np.array([0.2, next(turns)], dtype=np.float32)
+            return action, (None, action[None])
+
+    goal = frame_with({(0, 200, 0): (slice(10, 14), slice(10, 14))})
+    empty = frame_with({})
+    agent = TurnKeepingAgent(Model(), after=2)
+    taken = [agent(frame)[1] for frame in (empty, empty, empty, empty, goal, empty, empty)]
+    # the agent's own turn, then the sign of -0.6 kept at each turn's magnitude; in view again: its own; gone again: 0.5's
+    assert taken == pytest.approx([0.3, -0.6, -0.8, -0.2, -0.4, 0.7, 0.5])
+    assert agent.state[1][0].tolist() == pytest.approx([0.2, 0.5])  # the filter is told the action taken
+
+
 def test_same_way_as_before_compares_each_turns_sign_with_the_previous_steps(benchmarks) -> None:
     from search_values import same_way_as_before
 

@@ -8,10 +8,14 @@ horizontal field of view (from the simulator state). The same env settings (the 
     python benchmarks/tools/diagnostics/reward_by_view.py runs/<run>/model.zip --episodes 10
     python benchmarks/tools/diagnostics/reward_by_view.py --env SafetyGym/PointGoal1-v0 --size 32   # the script alone
     python benchmarks/tools/diagnostics/reward_by_view.py runs/<run> --search-after 1 4   # + the agent with a search
+    python benchmarks/tools/diagnostics/reward_by_view.py runs/<run> --keep-turn-after 3  # + its turns kept one way
 
 ``--search-after N``: the trained agent again, its actions replaced by the script's search (turn left in place) once
 the goal has been out of view for N frames in a row, until it shows again; its filter is told the action taken. What
 the agent would earn if it looked for the goal as the script does, at its own skill while the goal is in view.
+``--keep-turn-after N`` (a Point): the agent's own actions, but once the goal has been out of view for N frames its
+turn keeps the direction of its first turn past that point, at the agent's own turn rate and forward force: what a
+policy that holds a turn's direction, and nothing else, would earn.
 
 "Otherwise": the reward per step on the other steps. "Share of the reward": the part of the episodes' total reward
 earned on the condition's steps (above 100% where the other steps lose reward; n/a where the total is not positive).
@@ -53,19 +57,23 @@ class ModelAgent:
         return action
 
 
-class SearchingAgent(ModelAgent):
+class OutOfViewAgent(ModelAgent):
     """
-    ``ModelAgent`` whose action is ``search``'s once the goal has been out of view for ``after`` frames in a row, until
-    it shows again; the filter's last action is the one taken.
+    ``ModelAgent`` whose action ``replace`` changes once the goal has been out of view for ``after`` frames in a row,
+    until it shows again; the filter's last action is the one taken.
     """
 
-    def __init__(self, model: DSSLAC, search: Callable[[np.ndarray], np.ndarray], after: int, deterministic: bool = False):
+    def __init__(self, model: DSSLAC, after: int, deterministic: bool = False) -> None:
         super().__init__(model, deterministic)
-        self.search, self.after, self.out_of_view = search, after, 0
+        self.after, self.out_of_view = after, 0
 
     def reset(self) -> None:
         super().reset()
         self.out_of_view = 0
+
+    def replace(self, frame: np.ndarray, action: np.ndarray, first: bool) -> np.ndarray:
+        """The action taken instead of the agent's ``action`` (first: the first replaced step since the goal left)."""
+        raise NotImplementedError
 
     def __call__(self, frame: np.ndarray) -> np.ndarray:
         action = super().__call__(frame)
@@ -73,9 +81,37 @@ class SearchingAgent(ModelAgent):
         if self.out_of_view < self.after:
             return action
         assert self.state is not None
-        action = self.search(frame)
+        action = self.replace(frame, action, first=self.out_of_view == self.after)
         self.state = (self.state[0], self.model.policy.scale_action(action)[None])
         return action
+
+
+class SearchingAgent(OutOfViewAgent):
+    """``OutOfViewAgent`` that searches as ``search`` does (the script's turn in place)."""
+
+    def __init__(self, model: DSSLAC, search: Callable[[np.ndarray], np.ndarray], after: int, deterministic: bool = False):
+        super().__init__(model, after, deterministic)
+        self.search = search
+
+    def replace(self, frame: np.ndarray, action: np.ndarray, first: bool) -> np.ndarray:
+        return self.search(frame)
+
+
+class TurnKeepingAgent(OutOfViewAgent):
+    """
+    ``OutOfViewAgent`` of a Point (actions: forward force, turn rate) that keeps its own forward force and turn rate's
+    magnitude but turns the way it turned at its first replaced step, until the goal shows again: the agent's own
+    behaviour with a turn kept in one direction.
+    """
+
+    def __init__(self, model: DSSLAC, after: int, deterministic: bool = False) -> None:
+        super().__init__(model, after, deterministic)
+        self.direction = 1.0
+
+    def replace(self, frame: np.ndarray, action: np.ndarray, first: bool) -> np.ndarray:
+        if first:
+            self.direction = 1.0 if action[1] >= 0.0 else -1.0
+        return np.array([action[0], self.direction * abs(action[1])], dtype=action.dtype)
 
 
 def conditions(episode: Episode, size: tuple[int, int]) -> dict[str, np.ndarray]:
@@ -165,11 +201,21 @@ def main() -> None:
         metavar="N",
         help="with a model: also the agent searching as the script once the goal is out of view N frames",
     )
+    parser.add_argument(
+        "--keep-turn-after",
+        type=int,
+        nargs="*",
+        default=[],
+        metavar="N",
+        help="with a Point model: also the agent turning one way (its own forward and turn magnitude) once the goal is "
+        "out of view N frames",
+    )
     args = parser.parse_args()
     if args.episodes < 1:
         parser.error("--episodes must be positive")
-    if any(after < 1 for after in args.search_after) or (args.search_after and args.model is None):
-        parser.error("--search-after takes positive frame counts and a model")
+    for flag, counts in (("--search-after", args.search_after), ("--keep-turn-after", args.keep_turn_after)):
+        if any(after < 1 for after in counts) or (counts and args.model is None):
+            parser.error(f"{flag} takes positive frame counts and a model")
     agents: dict[str, Callable[[np.ndarray], np.ndarray]] = {}
     if args.model is not None:
         th.set_num_threads(1)
@@ -185,6 +231,14 @@ def main() -> None:
         for after in args.search_after:
             agents[f"trained, the script's search after {after} frames out of view"] = SearchingAgent(
                 model, scripts["seek"], after, args.deterministic
+            )
+        if args.keep_turn_after and env.unwrapped.robot_spec.name != "Point":
+            raise SystemExit(
+                f"--keep-turn-after: the Point's actions (forward, turn), not the {env.unwrapped.robot_spec.name}'s"
+            )
+        for after in args.keep_turn_after:
+            agents[f"trained, its turn kept one way after {after} frames out of view"] = TurnKeepingAgent(
+                model, after, args.deterministic
             )
         agents.update({f"script ({name})": script for name, script in scripts.items()})
         size = env.observation_space.shape[:2]
