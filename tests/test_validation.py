@@ -277,6 +277,25 @@ def test_the_zoo_stops_bad_input_before_its_log_folder(tmp_path: Path, capsys, m
     assert not (tmp_path / "logs").exists()
 
 
+def test_the_zoo_enjoys_only_a_model_that_is_there(tmp_path: Path, capsys, monkeypatch) -> None:
+    pytest.importorskip("rl_zoo3")
+    from sb3_dsslac.app.zoo import main as zoo
+
+    monkeypatch.setattr(sys, "argv", ["zoo"])
+    run = tmp_path / "logs" / "dsslac" / "SafetyGym-PointGoal1-v0_1"
+    run.mkdir(parents=True)
+    common = ["--algo", "dsslac", "--env", PG1, "-f", str(tmp_path / "logs"), "--no-render"]
+    for flags, named in (
+        (["-f", str(tmp_path / "none")], [str(tmp_path / "none" / "dsslac"), "python -m sb3_dsslac.zoo train"]),
+        (["--exp-id", "2"], ["SafetyGym-PointGoal1-v0_2", "not found"]),
+        (["--exp-id", "1"], [str(run / "SafetyGym-PointGoal1-v0.zip")]),  # the folder without its model
+        (["--exp-id", "1", "--load-best"], ["best_model.zip"]),
+    ):
+        assert zoo(["enjoy", *common, *flags]) == 2
+        lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(lines) == 1 and lines[0].startswith("error: no dsslac model to enjoy") and all(n in lines[0] for n in named)
+
+
 def test_resume_refuses_the_flags_it_would_ignore(capsys, no_training, tmp_path) -> None:
     error = refused(capsys, ["train", "--resume", str(tmp_path), "--seed", "3", "--threads", "2"], "--seed", "--threads")
     assert "config.yaml" in error

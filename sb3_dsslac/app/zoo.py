@@ -7,14 +7,17 @@ rl-zoo3's own scripts with DS-SLAC registered: ``python -m sb3_dsslac.zoo train|
 ``eval/mean_cost`` and ``eval/std_cost``, write ``costs`` into ``evaluations.npz``, keep the best model feasibility
 first, and under ``-optimize`` set the cost constraint of each trial; ``-optimize`` workers may start together on a new
 storage. Bad input stops before the zoo makes its log folder, envs or model: the env id, and for ``dsslac`` the
-keywords of the ``-conf`` file and ``--hyperparams``, ``--env-kwargs`` and ``--device`` (``sb3_dsslac.common.validation``) end
-with one ``error:`` line and exit status 2. Needs ``pip install "sb3_dsslac[zoo]"``, which also installs ``requests``:
-rl-zoo3 2.9.2's ``enjoy`` imports it (through its hub module) without declaring it.
+keywords of the ``-conf`` file and ``--hyperparams``, ``--env-kwargs`` and ``--device`` (``sb3_dsslac.common.validation``),
+and for ``enjoy`` a ``dsslac`` model that is not in its folder, end with one ``error:`` line and exit status 2. Needs
+``pip install "sb3_dsslac[zoo]"``, which also installs ``requests``: rl-zoo3 2.9.2's ``enjoy`` imports it (through its
+hub module) without declaring it.
 """
 
 import argparse
+import contextlib
 import functools
 import importlib
+import io
 import sys
 import types
 from collections.abc import Callable
@@ -142,6 +145,44 @@ def _check_env_flags(argv: list[str]) -> None:
         check_env_id(known.env)
 
 
+def _check_enjoy_model(argv: list[str]) -> None:
+    """
+    For ``dsslac``, the model ``enjoy`` would load is there, found by the zoo's own ``get_model_path`` (the zoo asserts
+    with a traceback, and for its default folder tries the Hugging Face hub, which holds no DS-SLAC agent).
+    """
+    from huggingface_sb3 import EnvironmentName
+    from rl_zoo3.utils import get_model_path
+
+    # The flags of rl_zoo3.enjoy that name the model, with its defaults
+    parser = argparse.ArgumentParser(add_help=False)
+    parser.add_argument("--algo", default="ppo")
+    parser.add_argument("--env", default="CartPole-v1")
+    parser.add_argument("-f", "--folder", default="rl-trained-agents")
+    parser.add_argument("--exp-id", type=int, default=0)
+    parser.add_argument("--load-best", action="store_true")
+    parser.add_argument("--load-checkpoint", type=int)
+    parser.add_argument("--load-last-checkpoint", action="store_true")
+    known, _ = parser.parse_known_args(argv)
+    if known.algo != ALGO:
+        return
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):  # the zoo prints the experiment it picks; enjoy will again
+            get_model_path(
+                known.exp_id,
+                known.folder,
+                known.algo,
+                EnvironmentName(known.env),
+                known.load_best,
+                known.load_checkpoint,
+                known.load_last_checkpoint,
+            )
+    except (AssertionError, ValueError) as error:
+        raise InputError(
+            f"no {ALGO} model to enjoy ({error}); train one with python -m sb3_dsslac.zoo train --algo {ALGO} "
+            f"--env {known.env} -f {known.folder}"
+        ) from None
+
+
 def register() -> None:
     """Add DS-SLAC to rl-zoo3 (algorithm, sampler, converter) and make the zoo's evaluations measure the cost."""
     import rl_zoo3.exp_manager
@@ -171,6 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     sys.argv = [f"{sys.argv[0]} {argv[0]}", *argv[1:]]
     try:
         _check_env_flags(argv[1:])
+        if argv[0] == "enjoy":
+            _check_enjoy_model(argv[1:])
         # Only the subcommand's module: rl_zoo3.enjoy loads the zoo's Hugging Face hub code, which training never needs
         if argv[0] == "train":
             from rl_zoo3.train import train
