@@ -5,9 +5,9 @@ Named hyperparameter sets of ``DSSLAC`` (``PRESETS``) and the env keywords some 
   options (a GPU, or a CPU that computes bfloat16 natively);
 - ``cpu``: small networks, a pixel run end to end in a few minutes on a laptop CPU; learns little;
 - ``cpu_learning``: vector observations; learns PointGoal1 in about 30 minutes on a 2-core CPU;
-- ``cpu_pixels`` (64x64 frames) and ``cpu_pixels32`` / ``cpu_pixels32_bounded`` / ``cpu_pixels32_pid`` (32x32 frames at
-  action repeat 4): the thesis's pixel pipeline on a CPU budget. What each reaches, per task, is in
-  docs/pixel_learning.md.
+- ``cpu_pixels`` (64x64 frames) and ``cpu_pixels32`` / ``cpu_pixels32_bounded`` / ``cpu_pixels32_pid`` /
+  ``cpu_pixels32_prev_action`` (32x32 frames at action repeat 4): the thesis's pixel pipeline on a CPU budget. What
+  each reaches, per task, is in docs/pixel_learning.md.
 """
 
 from typing import Any
@@ -143,6 +143,20 @@ PRESETS: dict[str, dict[str, Any]] = {
         "pid_ki": 1e-4,
         "pid_kd": 0.0,
     },
+    # cpu_pixels32_pid with the previous action beside the belief as the actor's and the critics' input: out of sight of
+    # the goal, the belief (2-4 frames of memory) does not say which way the agent was turning, and holding a turn's
+    # direction recovered 60-70% of a scripted search's reward (benchmarks/results/goal_out_of_view.md). It learns from
+    # the last 3 transitions of each window (96 samples per update): the first frame's previous action is outside it
+    "cpu_pixels32_prev_action": {
+        **CPU_PIXELS32_BOUNDED,
+        "actor_critic_transitions": 3,
+        "n_quantiles": 8,
+        "lagrange": "pid",
+        "pid_kp": 0.004,
+        "pid_ki": 1e-4,
+        "pid_kd": 0.0,
+        "policy_kwargs": {**CPU_PIXELS32_BOUNDED["policy_kwargs"], "previous_action_input": True},
+    },
 }
 
 
@@ -150,7 +164,7 @@ PRESETS: dict[str, dict[str, Any]] = {
 # passes its own (``train --env-kwargs``)
 PRESET_ENV_KWARGS: dict[str, dict[str, Any]] = {
     name: {"width": 32, "height": 32, "action_repeat": 4}
-    for name in ("cpu_pixels32", "cpu_pixels32_bounded", "cpu_pixels32_pid")
+    for name in ("cpu_pixels32", "cpu_pixels32_bounded", "cpu_pixels32_pid", "cpu_pixels32_prev_action")
 }
 
 

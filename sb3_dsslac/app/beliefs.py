@@ -67,7 +67,7 @@ def episode_beliefs(
                     transitions[-1].append(z)
                 if done or (max_steps is not None and steps == max_steps):
                     break
-                action = policy.actor(z, deterministic=deterministic)
+                action = policy.actor(policy.actor_critic_input(z, action, start), deterministic=deterministic)
                 transitions.append([z, action])
                 env_action = policy.unscale_action(action.cpu().numpy()).reshape(env.action_space.shape)
                 observation, reward, terminated, truncated, info = env.step(env_action)

@@ -67,6 +67,7 @@ PRESET_SUMMARIES: dict[str, str] = {
     "cpu_pixels32": "cpu_pixels on 32x32 frames at action repeat 4, the multiplier aiming at cost 20",
     "cpu_pixels32_bounded": "cpu_pixels32 with bounded latents (every std in [0.1, 2], every |mean| <= 10)",
     "cpu_pixels32_pid": "cpu_pixels32_bounded learning from 4 transitions per window, with the PID multiplier",
+    "cpu_pixels32_prev_action": "cpu_pixels32_pid with the previous action beside the belief (actor and critics)",
 }
 
 

@@ -77,11 +77,12 @@ class FilteredRollouts(OffPolicyAlgorithm):
         episode_start = th.as_tensor(self._last_episode_starts, dtype=th.bool, device=self.device)
         self.policy.set_training_mode(False)
         with th.inference_mode():
-            z, z2 = self.policy.belief_step(observation, *self._last_filter_state, episode_start, deterministic=False)
+            z2_prev, action_prev = self._last_filter_state
+            z, z2 = self.policy.belief_step(observation, z2_prev, action_prev, episode_start, deterministic=False)
             if self.num_timesteps < learning_starts:
                 scaled_action = th.tanh(2.0 * th.randn(n_envs, self.policy.action_dim, device=self.device))
             else:
-                scaled_action = self.policy.actor(z)
+                scaled_action = self.policy.actor(self.policy.actor_critic_input(z, action_prev, episode_start))
         self._last_filter_state = (z2, scaled_action)
         buffer_action = scaled_action.cpu().numpy()
         raise_if_action_not_finite(buffer_action, self.num_timesteps, self._n_updates)

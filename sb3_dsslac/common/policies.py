@@ -52,6 +52,9 @@ class LatentPolicy(BasePolicy):
     :param latent_kl_balance: None (the thesis's) or the share of the KL's gradient that trains the prior
         (``LatentModel``'s ``kl_balance``; 0.8 in LAMBDA)
     :param latent_learning_rate: Adam step size of the latent model
+    :param previous_action_input: the actor and both critics take the previous action beside the belief, ``[z_t,
+        a_{t-1}]`` (zero at an episode's first step), instead of ``z_t`` alone (the thesis's). The belief keeps what the
+        frames show; out of sight of everything, the previous action is what says which way the agent was turning
     :param normalize_images: divide uint8 images by 255
     :param normalize_vectors: standardise vector observations with the mean and std of the warm-up data (set once by
         ``set_observation_statistics``; saved with the policy). Without it, the fixed-variance likelihood lets large
@@ -91,6 +94,7 @@ class LatentPolicy(BasePolicy):
         latent_mean_bound: float | None = None,
         latent_kl_balance: float | None = None,
         latent_learning_rate: float = 1e-4,
+        previous_action_input: bool = False,
         normalize_images: bool = True,
         normalize_vectors: bool = True,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
@@ -125,6 +129,7 @@ class LatentPolicy(BasePolicy):
         self.latent_mean_bound = latent_mean_bound
         self.latent_kl_balance = latent_kl_balance
         self.latent_learning_rate = latent_learning_rate
+        self.previous_action_input = previous_action_input
         self.normalize_vectors = normalize_vectors
         self._scale_images = normalize_images and is_image_space(observation_space)
         vector_shape = self.observation_space.shape if len(self.observation_space.shape) == 1 else (0,)  # type: ignore[arg-type]
@@ -151,12 +156,12 @@ class LatentPolicy(BasePolicy):
             mean_bound=self.latent_mean_bound,
             kl_balance=self.latent_kl_balance,
         )
-        z_dim = self.latent.z_dim
-        self.actor = LatentActor(z_dim, self.action_dim, self.hidden_units)
-        self.critic = TwinQCritic(z_dim, self.action_dim, self.hidden_units)
-        self.critic_target = TwinQCritic(z_dim, self.action_dim, self.hidden_units)
+        state_dim = self.latent.z_dim + (self.action_dim if self.previous_action_input else 0)
+        self.actor = LatentActor(state_dim, self.action_dim, self.hidden_units)
+        self.critic = TwinQCritic(state_dim, self.action_dim, self.hidden_units)
+        self.critic_target = TwinQCritic(state_dim, self.action_dim, self.hidden_units)
         self.critic_target.load_state_dict(self.critic.state_dict())
-        self.cost_critic, self.cost_critic_target = (self._make_cost_critic(z_dim, self.action_dim) for _ in range(2))
+        self.cost_critic, self.cost_critic_target = (self._make_cost_critic(state_dim, self.action_dim) for _ in range(2))
         self.cost_critic_target.load_state_dict(self.cost_critic.state_dict())
         for target in (self.critic_target, self.cost_critic_target):
             target.requires_grad_(False)
@@ -196,6 +201,7 @@ class LatentPolicy(BasePolicy):
                 latent_mean_bound=self.latent_mean_bound,
                 latent_kl_balance=self.latent_kl_balance,
                 latent_learning_rate=self.latent_learning_rate,
+                previous_action_input=self.previous_action_input,
                 normalize_vectors=self.normalize_vectors,
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,
@@ -247,6 +253,21 @@ class LatentPolicy(BasePolicy):
         z1, z2 = self.latent.filter_step(feature, z2_prev, action_prev, episode_start, deterministic)
         return th.cat([z1, z2], dim=-1), z2
 
+    def actor_critic_input(self, z: th.Tensor, action_prev: th.Tensor, episode_start: th.Tensor | None = None) -> th.Tensor:
+        """
+        What the actor and the critics take: the belief, and with ``previous_action_input`` the previous action.
+
+        :param z: beliefs (..., z_dim)
+        :param action_prev: the action taken before each belief's frame, scaled to [-1, 1] (..., action_dim)
+        :param episode_start: (n,) bool, True where the belief is an episode's first (its previous action counts as zero)
+        :return: ``z`` (..., z_dim), or ``[z, a_prev]`` (..., z_dim + action_dim) with ``previous_action_input``
+        """
+        if not self.previous_action_input:
+            return z
+        if episode_start is not None:
+            action_prev = action_prev.masked_fill(episode_start.reshape(-1, 1), 0.0)
+        return th.cat([z, action_prev], dim=-1)
+
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         """Act from a single frame, as at the first step of an episode (no history). Prefer ``predict`` with state."""
         assert isinstance(observation, th.Tensor)
@@ -254,7 +275,7 @@ class LatentPolicy(BasePolicy):
         z2_prev, action_prev = self.initial_state(n_envs)
         episode_start = th.ones(n_envs, dtype=th.bool, device=self.device)
         z, _ = self.belief_step(observation, z2_prev, action_prev, episode_start, deterministic)
-        return self.actor(z, deterministic=deterministic)
+        return self.actor(self.actor_critic_input(z, action_prev), deterministic=deterministic)
 
     def forward(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(observation, deterministic=deterministic)
@@ -294,7 +315,7 @@ class LatentPolicy(BasePolicy):
             starts = th.as_tensor(flags.reshape(n_envs), device=self.device)
         with th.inference_mode():
             z, z2 = self.belief_step(obs_tensor, z2_prev, action_prev, starts, deterministic)
-            scaled_actions = self.actor(z, deterministic=deterministic)
+            scaled_actions = self.actor(self.actor_critic_input(z, action_prev, starts), deterministic=deterministic)
         scaled = scaled_actions.cpu().numpy()
         actions = self.unscale_action(scaled).reshape((-1, *self.action_space.shape))  # type: ignore[misc]
         new_state = (z2.cpu().numpy(), scaled)

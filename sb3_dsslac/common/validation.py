@@ -240,9 +240,19 @@ def check_arguments(function: Callable[..., Any], arguments: Mapping[str, Any], 
 
 
 def check_related_arguments(arguments: Mapping[str, Any]) -> None:
-    """The ranges of ``DSSLAC``'s keywords that depend on another: ``actor_critic_transitions`` and ``cost_target``."""
+    """
+    The ranges of ``DSSLAC``'s keywords that depend on another: ``actor_critic_transitions`` (at most ``sequence_length``,
+    one fewer with the policy's ``previous_action_input``: a window's first frame has no previous action in it) and
+    ``cost_target``.
+    """
     transitions, length = arguments["actor_critic_transitions"], arguments["sequence_length"]
-    if not 1 <= transitions <= length:
+    if (arguments["policy_kwargs"] or {}).get("previous_action_input", False):
+        if not 1 <= transitions <= length - 1:
+            raise ValueError(
+                f"actor_critic_transitions must be in [1, sequence_length - 1 = {length - 1}] with previous_action_input "
+                f"(a window's first frame has no previous action in it), got {transitions}"
+            )
+    elif not 1 <= transitions <= length:
         raise ValueError(f"actor_critic_transitions must be in [1, sequence_length={length}], got {transitions}")
     target, limit = arguments["cost_target"], arguments["cost_limit"]
     if target is not None and not 0.0 <= target <= limit:

@@ -235,12 +235,16 @@ class GradientStep:
     def transitions(self, batch: SequenceBatch, latents: th.Tensor) -> Transitions:
         """
         The last ``actor_critic_transitions`` transitions of each sequence, flattened: ``z = latents[:, t]`` to
-        ``z' = latents[:, t + 1]`` for the last ``k`` steps ``t`` (N = B * k, sequence-major).
+        ``z' = latents[:, t + 1]`` for the last ``k`` steps ``t`` (N = B * k, sequence-major). With the policy's
+        ``previous_action_input`` each state is ``[latents[:, t], actions[:, t - 1]]``: the window's first frame has no
+        previous action in the window, so ``k <= L - 1`` (``DSSLAC`` checks it).
 
         :param batch: the sequences (B, L+1 frames)
         :param latents: their posterior samples (B, L+1, z_dim)
         """
         k = self.config.actor_critic_transitions
+        if self.policy.previous_action_input:  # the states of frames 1..L, (B, L, z_dim + action_dim)
+            latents = self.policy.actor_critic_input(latents[:, 1:], batch.actions)
         if k == 1:  # the thesis's: one view of each field (the general form below takes two)
             rewards, costs, terminated = (field[:, -1:] for field in (batch.rewards, batch.costs, batch.terminated))
             return Transitions(latents[:, -2], batch.actions[:, -1], rewards, costs, terminated, latents[:, -1])

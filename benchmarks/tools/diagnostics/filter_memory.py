@@ -58,7 +58,7 @@ def filtered_episode(model: DSSLAC, env_id: str, seed: int, env_kwargs: dict[str
                 feature = latent.encode(policy.preprocess(image).unsqueeze(1)).squeeze(1)  # type: ignore[arg-type]
                 z1, sampled_z2 = latent.filter_step(feature, sampled_z2, action, start)
                 mean_z1, mean_z2 = latent.filter_step(feature, mean_z2, action, start, deterministic=True)
-                action = policy.actor(th.cat([z1, sampled_z2], dim=-1))
+                action = policy.actor(policy.actor_critic_input(th.cat([z1, sampled_z2], dim=-1), action, start))
                 features.append(feature[0])
                 beliefs.append(th.cat([mean_z1, mean_z2], dim=-1)[0])
                 actions.append(action[0])
