@@ -256,3 +256,19 @@ def test_search_values_scores_the_agents_action_and_each_alternative_with_the_cr
     assert (gone[1:] == 0).sum() + (np.diff(gone) == 1).sum() == 11  # each step: back in view, or one frame longer gone
     assert values[:, 1:] == pytest.approx(np.tile([0.0, -2.0, -1.0], (12, 1)))  # left, right, straight (scaled turn 1, -1, 0)
     assert values[:, 0] == pytest.approx(actions[:, 1] - 1.0, abs=1e-5)  # the agent's own turn (Point units = scaled) minus 1
+
+
+@pytest.mark.parametrize("robot", ["Point", "Car"])
+def test_the_point_only_diagnostics_stop_on_another_robot(benchmarks, robot: str) -> None:
+    from ceiling import make_ceiling_env
+    from reward_by_view import require_point
+
+    env = make_ceiling_env(f"{robot}Goal1", 32)
+    try:
+        if robot == "Point":
+            assert require_point(env, "SafetyGym/PointGoal1-v0", "--keep-turn-after") is None
+        else:
+            with pytest.raises(SystemExit, match=r"--keep-turn-after: the Point's actions .* not the Car's"):
+                require_point(env, "SafetyGym/CarGoal1-v0", "--keep-turn-after")
+    finally:
+        env.close()

@@ -42,6 +42,13 @@ from sb3_dsslac.common.envs import make_env
 PIXEL_COUNTS = (1, 3, 10)
 
 
+def require_point(env, env_id: str, what: str) -> None:
+    """Exit with a message unless ``env``'s robot is the Point, whose actions (forward force, turn rate) ``what`` uses."""
+    robot = env.unwrapped.robot_spec.name
+    if robot != "Point":
+        raise SystemExit(f"{what}: the Point's actions (forward, turn), not the {robot}'s ({env_id})")
+
+
 class ModelAgent:
     """A DS-SLAC agent acting on frames one at a time, its latent filter carried between them (``reset`` at a new episode)."""
 
@@ -224,6 +231,8 @@ def main() -> None:
     else:
         env_id, env_kwargs = args.env, {"width": args.size, "height": args.size, "action_repeat": ACTION_REPEAT}
     env = make_env(env_id, "pixels", env_kwargs=env_kwargs)
+    if args.keep_turn_after:
+        require_point(env, env_id, "--keep-turn-after")
     seeds = range(args.episode_seed, args.episode_seed + args.episodes)
     try:
         env.reset(seed=seeds[0])
@@ -231,10 +240,6 @@ def main() -> None:
         for after in args.search_after:
             agents[f"trained, the script's search after {after} frames out of view"] = SearchingAgent(
                 model, scripts["seek"], after, args.deterministic
-            )
-        if args.keep_turn_after and env.unwrapped.robot_spec.name != "Point":
-            raise SystemExit(
-                f"--keep-turn-after: the Point's actions (forward, turn), not the {env.unwrapped.robot_spec.name}'s"
             )
         for after in args.keep_turn_after:
             agents[f"trained, its turn kept one way after {after} frames out of view"] = TurnKeepingAgent(

@@ -29,7 +29,7 @@ import torch as th
 from ceiling import FULL_FORWARD
 from goal_view import goal_mask, in_view
 from machine import cpu_model
-from reward_by_view import load_agent
+from reward_by_view import load_agent, require_point
 
 from sb3_dsslac import DSSLAC
 from sb3_dsslac.common.envs import make_env
@@ -104,8 +104,7 @@ def main() -> None:
     th.set_num_threads(1)
     model, env_id, env_kwargs = load_agent(args.run)
     env = make_env(env_id, "pixels", env_kwargs=env_kwargs)
-    if env.unwrapped.robot_spec.name != "Point":
-        raise SystemExit(f"{env_id}: the alternatives are the Point's actions, not the {env.unwrapped.robot_spec.name}'s")
+    require_point(env, env_id, "the alternatives")
     try:
         episodes = [episode_values(model, env, seed) for seed in range(args.episode_seed, args.episode_seed + args.episodes)]
     finally:
