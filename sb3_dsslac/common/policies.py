@@ -53,8 +53,8 @@ class LatentPolicy(BasePolicy):
         (``LatentModel``'s ``kl_balance``; 0.8 in LAMBDA)
     :param latent_learning_rate: Adam step size of the latent model
     :param previous_action_input: the actor and both critics take the previous action beside the belief, ``[z_t,
-        a_{t-1}]`` (zero at an episode's first step), instead of ``z_t`` alone (the thesis's). The belief keeps what the
-        frames show; out of sight of everything, the previous action is what says which way the agent was turning
+        a_{t-1}]`` (zero at an episode's first step), instead of ``z_t`` alone (the thesis's). The belief holds what the
+        last few frames show; when they show nothing to steer by, the previous action says which way the agent turned
     :param normalize_images: divide uint8 images by 255
     :param normalize_vectors: standardise vector observations with the mean and std of the warm-up data (set once by
         ``set_observation_statistics``; saved with the policy). Without it, the fixed-variance likelihood lets large
