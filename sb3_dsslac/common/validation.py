@@ -246,14 +246,13 @@ def check_related_arguments(arguments: Mapping[str, Any]) -> None:
     ``cost_target``.
     """
     transitions, length = arguments["actor_critic_transitions"], arguments["sequence_length"]
+    most, range_text = length, f"[1, sequence_length={length}]"
     if (arguments["policy_kwargs"] or {}).get("previous_action_input", False):
-        if not 1 <= transitions <= length - 1:
-            raise ValueError(
-                f"actor_critic_transitions must be in [1, sequence_length - 1 = {length - 1}] with previous_action_input "
-                f"(a window's first frame has no previous action in it), got {transitions}"
-            )
-    elif not 1 <= transitions <= length:
-        raise ValueError(f"actor_critic_transitions must be in [1, sequence_length={length}], got {transitions}")
+        most = length - 1
+        range_text = f"[1, sequence_length - 1 = {most}] with previous_action_input (a window's first frame has no previous "
+        range_text += "action in it)"
+    if not 1 <= transitions <= most:
+        raise ValueError(f"actor_critic_transitions must be in {range_text}, got {transitions}")
     target, limit = arguments["cost_target"], arguments["cost_limit"]
     if target is not None and not 0.0 <= target <= limit:
         raise ValueError(f"cost_target must be in [0, cost_limit={limit:g}] or None, got {target}")
