@@ -158,6 +158,18 @@ PRESETS: dict[str, dict[str, Any]] = {
         "pid_kd": 0.0,
         "policy_kwargs": {**CPU_PIXELS32_BOUNDED["policy_kwargs"], "previous_action_input": True},
     },
+    # cpu_pixels32_pid with a deterministic GRU z2 (``latent_recurrence="gru"``, an RSSM's recurrent state) in place of
+    # the Gaussian z2 transition: the Gaussian belief was measured to forget where the goal went within 2-4 frames
+    "cpu_pixels32_gru": {
+        **CPU_PIXELS32_BOUNDED,
+        "actor_critic_transitions": 4,
+        "n_quantiles": 8,
+        "lagrange": "pid",
+        "pid_kp": 0.004,
+        "pid_ki": 1e-4,
+        "pid_kd": 0.0,
+        "policy_kwargs": {**CPU_PIXELS32_BOUNDED["policy_kwargs"], "latent_recurrence": "gru"},
+    },
 }
 
 
@@ -165,7 +177,7 @@ PRESETS: dict[str, dict[str, Any]] = {
 # passes its own (``train --env-kwargs``)
 PRESET_ENV_KWARGS: dict[str, dict[str, Any]] = {
     name: {"width": 32, "height": 32, "action_repeat": 4}
-    for name in ("cpu_pixels32", "cpu_pixels32_bounded", "cpu_pixels32_pid", "cpu_pixels32_prev_action")
+    for name in ("cpu_pixels32", "cpu_pixels32_bounded", "cpu_pixels32_pid", "cpu_pixels32_prev_action", "cpu_pixels32_gru")
 }
 
 

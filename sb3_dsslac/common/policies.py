@@ -14,9 +14,14 @@ from sb3_dsslac.nn.actor import LatentActor
 from sb3_dsslac.nn.critics import IQNCostCritic, MeanCostCritic, TwinQCritic
 from sb3_dsslac.nn.latent import STD_EPS, THESIS_IMAGE_CHANNELS, LatentModel
 from sb3_dsslac.nn.optim import fast_adam_kwargs
+from sb3_dsslac.nn.recurrent_latent import RecurrentLatentModel
 
 # Filter state carried through ``predict``: (z2 (n_envs, z2_dim), previous action scaled to [-1, 1] (n_envs, action_dim))
 FilterState = tuple[np.ndarray, np.ndarray]
+
+
+# The latent model of each ``latent_recurrence``
+LATENT_MODELS: dict[str, type[LatentModel]] = {"gaussian": LatentModel, "gru": RecurrentLatentModel}
 
 
 class LatentPolicy(BasePolicy):
@@ -51,6 +56,9 @@ class LatentPolicy(BasePolicy):
         and a bound the latents cannot run away (see ``GaussianBounds``)
     :param latent_kl_balance: None (the thesis's) or the share of the KL's gradient that trains the prior
         (``LatentModel``'s ``kl_balance``; 0.8 in LAMBDA)
+    :param latent_recurrence: how z2 follows from the previous step: "gaussian" (the thesis's: a Gaussian MLP of
+        ``[z1_{t+1}, z2_t, a_t]``, noise at every step) or "gru" (a deterministic GRU state, as in an RSSM:
+        ``RecurrentLatentModel``), which can hold what left the view
     :param latent_learning_rate: Adam step size of the latent model
     :param previous_action_input: the actor and both critics take the previous action beside the belief, ``[z_t,
         a_{t-1}]`` (zero at an episode's first step), instead of ``z_t`` alone (the thesis's). The belief holds what the
@@ -93,6 +101,7 @@ class LatentPolicy(BasePolicy):
         latent_max_std: float | None = None,
         latent_mean_bound: float | None = None,
         latent_kl_balance: float | None = None,
+        latent_recurrence: str = "gaussian",
         latent_learning_rate: float = 1e-4,
         previous_action_input: bool = False,
         normalize_images: bool = True,
@@ -128,6 +137,9 @@ class LatentPolicy(BasePolicy):
         self.latent_max_std = latent_max_std
         self.latent_mean_bound = latent_mean_bound
         self.latent_kl_balance = latent_kl_balance
+        if latent_recurrence not in LATENT_MODELS:
+            raise ValueError(f"latent_recurrence must be one of {sorted(LATENT_MODELS)}, got {latent_recurrence!r}")
+        self.latent_recurrence = latent_recurrence
         self.latent_learning_rate = latent_learning_rate
         self.previous_action_input = previous_action_input
         self.normalize_vectors = normalize_vectors
@@ -139,7 +151,7 @@ class LatentPolicy(BasePolicy):
 
     def _build(self, lr_schedule: Schedule) -> None:
         assert self.observation_space.shape is not None
-        self.latent = LatentModel(
+        self.latent = LATENT_MODELS[self.latent_recurrence](
             tuple(self.observation_space.shape),
             self.action_dim,
             feature_dim=self.feature_dim,
@@ -200,6 +212,7 @@ class LatentPolicy(BasePolicy):
                 latent_max_std=self.latent_max_std,
                 latent_mean_bound=self.latent_mean_bound,
                 latent_kl_balance=self.latent_kl_balance,
+                latent_recurrence=self.latent_recurrence,
                 latent_learning_rate=self.latent_learning_rate,
                 previous_action_input=self.previous_action_input,
                 normalize_vectors=self.normalize_vectors,

@@ -157,6 +157,7 @@ RANGES: dict[str, Check] = {
     "latent_max_std": _POSITIVE,
     "latent_mean_bound": _POSITIVE,
     "latent_kl_balance": _numbers(0, 1),
+    "latent_recurrence": _words("gaussian", "gru"),
 }
 
 

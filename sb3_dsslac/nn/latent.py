@@ -191,6 +191,9 @@ class LatentModel(nn.Module):
         so that what a frame shows is kept in the belief against the KL (0.5 halves the plain KL's gradient)
     """
 
+    # Whether eager rollouts take ``posterior_steps`` (written for z1's and z2's Gaussian MLPs) over step-by-step autograd
+    uses_fused_rollout = True
+
     def __init__(
         self,
         observation_shape: tuple[int, ...],
@@ -315,7 +318,8 @@ class LatentModel(nn.Module):
         if mixed_precision:
             first = tuple(value.float() for value in first)
         with torch.autocast(features.device.type, enabled=False) if mixed_precision else contextlib.nullcontext():
-            if torch.compiler.is_compiling():  # the compiler differentiates (and fuses) the steps itself
+            # the compiler differentiates (and fuses) the steps itself; the fused rollout needs Gaussian MLPs
+            if torch.compiler.is_compiling() or not self.uses_fused_rollout:
                 return self._posterior_steps(features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:])
             steps = posterior_steps(
                 features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:], self.z1_posterior, self.z2_transition
