@@ -58,6 +58,8 @@ def test_dense_layers_keep_a_channels_last_model_channels_last():
         ((32, 16), 3, 2, 1, 1, 4),
         ((4, 2), 4, 2, 1, 0, 5),
         ((3, 5), 3, 3, 0, 2, 6),
+        ((16, 8), 3, 2, 1, 0, 11),  # 84x84 frames' decoder: 11x11 onto 21x21
+        ((8, 3), 5, 2, 2, 1, 42),  # and its output layer
     ],
 )
 @pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
@@ -81,11 +83,11 @@ def test_subpixel_conv_transpose2d_compiles_to_the_same_numbers():
     torch.testing.assert_close(torch.compile(fast, fullgraph=True)(x), reference(x), atol=1e-5, rtol=1e-5)
 
 
-@pytest.mark.parametrize("size", [32, 64])
-def test_latent_model_loads_the_state_dict_of_plain_convolutions(size):
+@pytest.mark.parametrize("height, width", [(32, 32), (64, 64), (84, 84), (48, 64), (84, 83)])
+def test_latent_model_loads_the_state_dict_of_plain_convolutions(height, width):
     """Checkpoints of models built from nn.Conv2d / nn.ConvTranspose2d layers load, and give the same images."""
     model = LatentModel(
-        (3, size, size), 2, feature_dim=16, z1_dim=4, z2_dim=8, hidden_units=(16,), image_channels=(4, 4, 8, 8)
+        (3, height, width), 2, feature_dim=16, z1_dim=4, z2_dim=8, hidden_units=(16,), image_channels=(4, 4, 8, 8)
     )
     plain = {}
     for name, module in model.named_modules():
@@ -103,9 +105,9 @@ def test_latent_model_loads_the_state_dict_of_plain_convolutions(size):
     assert {type(model.get_submodule(name)) for name in plain} >= {DenseConv2d, DenseConvTranspose2d, SubpixelConvTranspose2d}
     state = {f"{name}.{key}": value for name, layer in plain.items() for key, value in layer.state_dict().items()}
     model.load_state_dict({**model.state_dict(), **state})
-    observations = torch.rand(2, 3, 3, size, size)
+    observations = torch.rand(2, 3, 3, height, width)
     features = model.encode(observations)
-    x = observations.reshape(6, 3, size, size)
+    x = observations.reshape(6, 3, height, width)
     for index, layer in enumerate(model.encoder):
         x = plain[f"encoder.{index}"](x) if f"encoder.{index}" in plain else layer(x)
     torch.testing.assert_close(features, x.view(2, 3, -1), atol=1e-5, rtol=1e-5)
@@ -113,7 +115,7 @@ def test_latent_model_loads_the_state_dict_of_plain_convolutions(size):
     y = z.reshape(6, model.z_dim, 1, 1)
     for index, layer in enumerate(model.decoder):
         y = plain[f"decoder.{index}"](y) if f"decoder.{index}" in plain else layer(y)
-    torch.testing.assert_close(model.decode(z), y.view(2, 3, 3, size, size), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(model.decode(z), y.view(2, 3, 3, height, width), atol=1e-5, rtol=1e-5)
 
 
 @pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])

@@ -285,9 +285,9 @@ def test_bad_spaces_are_rejected_with_the_fix() -> None:
         small_model(DictHazardEnv())
 
 
-def test_image_size_without_architecture_is_rejected() -> None:
-    with pytest.raises(ValueError, match="64"):
-        small_model(HazardPointEnv(obs_type="pixels", size=48))
+def test_a_frame_smaller_than_the_conv_encoder_takes_is_rejected_when_the_model_is_built() -> None:
+    with pytest.raises(ValueError, match=r"Unsupported image shape \(3, 16, 16\).*at least 32x32 pixels"):
+        small_model(HazardPointEnv(obs_type="pixels", size=16))
 
 
 def test_env_without_cost_fails_at_the_first_step() -> None:

@@ -10,6 +10,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 
+from sb3_dsslac.common.env_info import check_observations_finite
 from sb3_dsslac.nn.actor import LatentActor
 from sb3_dsslac.nn.critics import IQNCostCritic, MeanCostCritic, TwinQCritic
 from sb3_dsslac.nn.latent import STD_EPS, THESIS_IMAGE_CHANNELS, LatentModel
@@ -32,7 +33,8 @@ class LatentPolicy(BasePolicy):
     ``predict(obs, state, episode_start)`` runs one step of the latent filter and returns its new state, as
     ``RecurrentPPO`` does, so ``evaluate_policy`` and ``EvalCallback`` work unchanged.
 
-    :param observation_space: Box of uint8 images (C, 64, 64) or (C, 32, 32), or a 1-D float Box
+    :param observation_space: Box of uint8 images (C, H, W), both sides at least 32 pixels (any with an encoder and a
+        decoder of the user's), or a 1-D float Box
     :param action_space: Box action space
     :param lr_schedule: learning rate schedule of the actor and critics
     :param z1_dim: size of the stochastic latent z1
@@ -49,7 +51,16 @@ class LatentPolicy(BasePolicy):
     :param cost_loss_weight: weight of the Bernoulli cost likelihood in the latent loss
     :param cost_positive_weight: extra weight of unsafe (cost > 0) steps in the cost likelihood
     :param image_channels: output channels of the conv encoder's four stride-2 layers, mirrored by the decoder; the
-        thesis's (32, 64, 128, 256) by default. Narrower convolutions are most of what makes a pixel update cheap
+        thesis's (32, 64, 128, 256) by default. Narrower convolutions are most of what makes a pixel update cheap.
+        Frames of up to 56 pixels use the first three, of over 112 pixels repeat the last (``LatentModel``)
+    :param encoder_class: an encoder of the user's in place of the built-in one, as SB3's ``features_extractor_class``:
+        ``encoder_class(observation_shape, feature_dim, **encoder_kwargs)``, a module mapping preprocessed observations
+        (N, *observation_shape) (images channels first, in [0, 1]) to (N, feature_dim) or (N, feature_dim, 1, 1)
+    :param encoder_kwargs: further keywords of ``encoder_class``
+    :param decoder_class: a decoder of the user's in place of the built-in one: ``decoder_class(z_dim,
+        observation_shape, **decoder_kwargs)``, a module mapping latents (N, z_dim) (``z_dim = z1_dim + z2_dim``) to the
+        mean (N, *observation_shape) of the observation Gaussian
+    :param decoder_kwargs: further keywords of ``decoder_class``
     :param latent_min_std: the floor on the std of the latent Gaussians (1e-5 in the thesis code)
     :param latent_max_std: the ceiling on their std (None, the thesis code's: none)
     :param latent_mean_bound: the bound on their means' absolute value (None, the thesis code's: none). With a ceiling
@@ -97,6 +108,10 @@ class LatentPolicy(BasePolicy):
         cost_loss_weight: float = 30.0,
         cost_positive_weight: float = 100.0,
         image_channels: tuple[int, ...] = THESIS_IMAGE_CHANNELS,
+        encoder_class: type[th.nn.Module] | None = None,
+        encoder_kwargs: dict[str, Any] | None = None,
+        decoder_class: type[th.nn.Module] | None = None,
+        decoder_kwargs: dict[str, Any] | None = None,
         latent_min_std: float = STD_EPS,
         latent_max_std: float | None = None,
         latent_mean_bound: float | None = None,
@@ -133,6 +148,8 @@ class LatentPolicy(BasePolicy):
         self.cost_loss_weight = cost_loss_weight
         self.cost_positive_weight = cost_positive_weight
         self.image_channels = tuple(image_channels)
+        self.encoder_class, self.encoder_kwargs = encoder_class, encoder_kwargs
+        self.decoder_class, self.decoder_kwargs = decoder_class, decoder_kwargs
         self.latent_min_std = latent_min_std
         self.latent_max_std = latent_max_std
         self.latent_mean_bound = latent_mean_bound
@@ -163,6 +180,10 @@ class LatentPolicy(BasePolicy):
             cost_loss_weight=self.cost_loss_weight,
             cost_positive_weight=self.cost_positive_weight,
             image_channels=self.image_channels,
+            encoder_class=self.encoder_class,
+            encoder_kwargs=self.encoder_kwargs,
+            decoder_class=self.decoder_class,
+            decoder_kwargs=self.decoder_kwargs,
             min_std=self.latent_min_std,
             max_std=self.latent_max_std,
             mean_bound=self.latent_mean_bound,
@@ -208,6 +229,10 @@ class LatentPolicy(BasePolicy):
                 cost_loss_weight=self.cost_loss_weight,
                 cost_positive_weight=self.cost_positive_weight,
                 image_channels=self.image_channels,
+                encoder_class=self.encoder_class,
+                encoder_kwargs=self.encoder_kwargs,
+                decoder_class=self.decoder_class,
+                decoder_kwargs=self.decoder_kwargs,
                 latent_min_std=self.latent_min_std,
                 latent_max_std=self.latent_max_std,
                 latent_mean_bound=self.latent_mean_bound,
@@ -318,6 +343,10 @@ class LatentPolicy(BasePolicy):
         obs_tensor, vectorized_env = self.obs_to_tensor(observation)
         assert isinstance(obs_tensor, th.Tensor)
         n_envs = obs_tensor.shape[0]
+        if obs_tensor.is_floating_point() and not bool(th.isfinite(obs_tensor).all()):  # before the filter, not after
+            check_observations_finite(
+                obs_tensor.cpu().numpy(), lambda row: f"predict()'s observation of env {row} of {n_envs}"
+            )
         if state is None:
             z2_prev, action_prev = self.initial_state(n_envs)
             starts = th.ones(n_envs, dtype=th.bool, device=self.device)

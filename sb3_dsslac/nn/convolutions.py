@@ -174,11 +174,16 @@ _subpixel_op.register_autograd(_backward, setup_context=_save_for_backward)
 
 
 class SubpixelConvTranspose2d(nn.ConvTranspose2d):
-    """``nn.ConvTranspose2d`` (square, stride > 1, no dilation or groups) whose forward pass is a sub-pixel convolution."""
+    """
+    ``nn.ConvTranspose2d`` (stride > 1) whose forward pass is a sub-pixel convolution on square inputs and geometry (no
+    dilation or groups); ATen's layer otherwise.
+    """
 
     def forward(self, x: Tensor, output_size: list[int] | None = None) -> Tensor:
         (stride, _), (padding, _), (output_padding, _) = self.stride, self.padding, self.output_padding
         plain = output_size is not None or self.groups != 1 or self.dilation != (1, 1) or x.shape[-1] != x.shape[-2]
-        if plain or autocast_enabled(x.device.type):  # autocast casts the inputs of ATen's own layer only
+        # Square geometry only: the output paddings of a frame whose sides differ in parity (84x83) can differ
+        square = all(first == second for first, second in (self.kernel_size, self.stride, self.padding, self.output_padding))
+        if plain or not square or autocast_enabled(x.device.type):  # autocast casts the inputs of ATen's own layer only
             return super().forward(x, output_size)
         return _subpixel_op(x, self.weight, self.bias, stride, padding, output_padding)

@@ -1,18 +1,17 @@
 """Sequential latent variable model of (DS-)SLAC: encoder, decoder, latent dynamics, reward and cost decoders."""
 
 import contextlib
-import itertools
 import math
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from sb3_dsslac.nn.convolutions import DenseConv2d, DenseConvTranspose2d, SubpixelConvTranspose2d
 from sb3_dsslac.nn.fused_rollout import posterior_steps
 from sb3_dsslac.nn.gaussian import STD_EPS, GaussianBounds
+from sb3_dsslac.nn.image_nets import check_decoder, check_encoder, check_image_shape, image_decoder, image_encoder
 from sb3_dsslac.nn.numerics import autocast_enabled
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
@@ -113,35 +112,6 @@ class LatentRollout(NamedTuple):
 THESIS_IMAGE_CHANNELS = (32, 64, 128, 256)
 
 
-def _image_encoder(channels: int, size: int, feature_dim: int, widths: tuple[int, ...]) -> nn.Sequential:
-    """
-    Conv encoder (C, size, size) -> (feature_dim, 1, 1), ELU after every layer (output included): stride-2 layers of
-    ``widths`` output channels (kernels 5, 3, 3, 3), then a 4x4 convolution; 32x32 images drop the last stride-2 layer.
-    """
-    specs = tuple(zip(widths, (5, 3, 3, 3), (2, 1, 1, 1), strict=True))[: 4 if size == 64 else 3]
-    layers: list[nn.Module] = []
-    in_ch = channels
-    for out_ch, kernel, pad in specs:
-        layers += [nn.Conv2d(in_ch, out_ch, kernel, stride=2, padding=pad), nn.ELU()]
-        in_ch = out_ch
-    layers += [DenseConv2d(in_ch, feature_dim, 4, stride=1, padding=0), nn.ELU()]
-    return nn.Sequential(*layers)
-
-
-def _image_decoder(z_dim: int, channels: int, size: int, widths: tuple[int, ...]) -> nn.Sequential:
-    """
-    ConvTranspose decoder (z_dim, 1, 1) -> (C, size, size), LeakyReLU(0.2) after every layer (output included): the
-    encoder's ``widths`` in reverse; 32x32 images drop the first stride-2 layer.
-    """
-    mirrored = tuple(reversed(widths[: 4 if size == 64 else 3]))
-    layers: list[nn.Module] = [DenseConvTranspose2d(z_dim, mirrored[0], 4, stride=1, padding=0), nn.LeakyReLU(0.2)]
-    for in_ch, out_ch in itertools.pairwise(mirrored):
-        layers += [nn.ConvTranspose2d(in_ch, out_ch, 3, stride=2, padding=1, output_padding=1), nn.LeakyReLU(0.2)]
-    output = SubpixelConvTranspose2d(mirrored[-1], channels, 5, stride=2, padding=2, output_padding=1)
-    layers += [output, nn.LeakyReLU(0.2)]
-    return nn.Sequential(*layers)
-
-
 def channels_last_is_faster(widths: tuple[int, ...], device: torch.device) -> bool:
     """
     Whether the convolutions of these encoder ``widths`` run channels-last (NHWC) on ``device``, the layout measured
@@ -165,10 +135,11 @@ class LatentModel(nn.Module):
     """
     Stochastic latent variable model of Safe SLAC / DS-SLAC with latent ``z = [z1, z2]``.
 
-    Images (C, 64, 64) use the published conv encoder/decoder; (C, 32, 32) uses the same nets with one stride-2 layer
-    less on each side; 1-D observations (D,) use MLPs. Observations are floats (images scaled to [0, 1]).
+    Images (C, H, W) use conv encoders/decoders chosen from the frame's size (``image_nets``; on 64x64 frames the
+    published ones, on 32x32 the same with one stride-2 layer less on each side), 1-D observations (D,) MLPs, unless
+    the caller gives an encoder and a decoder of its own. Observations are floats (images scaled to [0, 1]).
 
-    :param observation_shape: (C, 64, 64), (C, 32, 32) or (D,)
+    :param observation_shape: (C, H, W) with both sides at least 32 (``check_image_shape``), or (D,)
     :param action_dim: number of action dimensions (actions in [-1, 1])
     :param feature_dim: encoder output size per frame
     :param z1_dim: size of the stochastic z1 (the only part with a KL term)
@@ -178,8 +149,9 @@ class LatentModel(nn.Module):
     :param reward_loss_weight: scale of the Gaussian reward loss (1 in the thesis)
     :param cost_loss_weight: scale of the Bernoulli cost loss
     :param cost_positive_weight: extra weight of the positive (cost > 0) samples in the cost loss
-    :param image_channels: output channels of the encoder's four stride-2 convolutions, mirrored by the decoder (images
-        only; 32x32 images use the first three)
+    :param image_channels: output channels of the encoder's first four stride-2 convolutions, mirrored by the decoder
+        (images only; frames whose longer side is at most 56 pixels use the first three, over 112 pixels repeat the
+        last for their fifth and later stages: ``image_nets.stage_widths``)
     :param min_std: the floor on the std of the latent Gaussians (z1's prior and posterior, z2's): 1e-5 in the reference
         code, where a prior std at the floor lets one latent excursion make a KL of 1e10 or more
     :param max_std: the ceiling on their std (None in the reference code: ``softplus(raw) + min_std``, unbounded)
@@ -189,6 +161,14 @@ class LatentModel(nn.Module):
         splits its gradient, ``alpha * KL(sg(q) || p) + (1 - alpha) * KL(q || sg(p))`` (DreamerV2's KL balancing, 0.8
         in LAMBDA): the same value, the prior pulled toward the posterior more than the posterior toward the prior,
         so that what a frame shows is kept in the belief against the KL (0.5 halves the plain KL's gradient)
+    :param encoder_class: the encoder in place of the built-in one (None): ``encoder_class(observation_shape,
+        feature_dim, **encoder_kwargs)`` must map observations (N, *observation_shape) to (N, feature_dim) or
+        (N, feature_dim, 1, 1), checked on two zero observations here. It keeps its own initialisation
+    :param encoder_kwargs: further keywords of ``encoder_class``
+    :param decoder_class: the decoder in place of the built-in one (None): ``decoder_class(z_dim, observation_shape,
+        **decoder_kwargs)`` must map latents (N, z_dim) to the mean (N, *observation_shape) of the observation
+        Gaussian, checked on two zero latents here. It keeps its own initialisation
+    :param decoder_kwargs: further keywords of ``decoder_class``
     """
 
     # Whether eager rollouts take ``posterior_steps`` (written for z1's and z2's Gaussian MLPs) over step-by-step autograd
@@ -211,6 +191,10 @@ class LatentModel(nn.Module):
         max_std: float | None = None,
         mean_bound: float | None = None,
         kl_balance: float | None = None,
+        encoder_class: type[nn.Module] | None = None,
+        encoder_kwargs: dict[str, Any] | None = None,
+        decoder_class: type[nn.Module] | None = None,
+        decoder_kwargs: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
         if kl_balance is not None and not 0.0 <= kl_balance <= 1.0:
@@ -234,21 +218,30 @@ class LatentModel(nn.Module):
         self.cost_positive_weight = cost_positive_weight
         bounds = GaussianBounds(min_std, max_std, mean_bound)
 
-        if len(self.observation_shape) == 3:
-            channels, height, width = self.observation_shape
-            if height != width or height not in (32, 64):
-                raise ValueError(
-                    f"Unsupported image shape {self.observation_shape}: only 64x64 images (and 32x32 for small tests) "
-                    "are supported. Resize the observations, e.g. width=64, height=64 in safety_envs."
-                )
-            self.encoder = _image_encoder(channels, height, feature_dim, self.image_channels)
-            self.decoder = _image_decoder(self.z_dim, channels, height, self.image_channels)
-        elif len(self.observation_shape) == 1:
-            obs_dim = self.observation_shape[0]
-            self.encoder = build_mlp(obs_dim, feature_dim, hidden_units, nn.ELU, nn.ELU)
-            self.decoder = build_mlp(self.z_dim, obs_dim, hidden_units, nn.ELU)
-        else:
+        if len(self.observation_shape) not in (1, 3):
             raise ValueError(f"observation_shape must be (C, H, W) or (D,), got {self.observation_shape}")
+        is_image = len(self.observation_shape) == 3
+        if is_image and (encoder_class is None or decoder_class is None):
+            check_image_shape(self.observation_shape)
+        if encoder_class is not None:
+            self.encoder = encoder_class(self.observation_shape, feature_dim, **(encoder_kwargs or {}))
+            check_encoder(self.encoder, self.observation_shape, feature_dim)
+        elif is_image:
+            self.encoder = image_encoder(*self.observation_shape, feature_dim, self.image_channels)
+        else:
+            self.encoder = build_mlp(self.observation_shape[0], feature_dim, hidden_units, nn.ELU, nn.ELU)
+        if decoder_class is not None:
+            self.decoder = decoder_class(self.z_dim, self.observation_shape, **(decoder_kwargs or {}))
+            check_decoder(self.decoder, self.z_dim, self.observation_shape)
+        elif is_image:
+            self.decoder = image_decoder(self.z_dim, *self.observation_shape, self.image_channels)
+        else:
+            self.decoder = build_mlp(self.z_dim, self.observation_shape[0], hidden_units, nn.ELU)
+        # The user's networks keep their initialisation; the built-in ones take ``init_weights`` (and the decoder's
+        # input is a 1x1 map of the latents); the layout measured faster is for the built-in convolutions
+        user_networks = [net for net, given in ((self.encoder, encoder_class), (self.decoder, decoder_class)) if given]
+        self.built_in_networks = not user_networks
+        self._latent_map_input = is_image and decoder_class is None
 
         # p(z2_0 | z1_0) = q(z2_0 | z1_0)
         self.z2_init = GaussianMLP(z1_dim, z2_dim, hidden_units, bounds)
@@ -267,7 +260,9 @@ class LatentModel(nn.Module):
         # p(c_t > 0 | z_t, a_t, z_{t+1}) as one logit
         self.cost_decoder = build_mlp(transition_dim, 1, hidden_units, nn.ELU)
 
-        init_weights(self)
+        for child in self.children():  # in the order of ``init_weights(self)``: the same draws
+            if all(child is not user for user in user_networks):
+                init_weights(child)
         self.set_layout_for(torch.device("cpu"))  # where modules are built; DSSLAC sets its own device's
 
     def set_layout_for(self, device: torch.device) -> None:
@@ -276,7 +271,8 @@ class LatentModel(nn.Module):
         (``channels_last_is_faster``), noted in ``channels_last``: the replay buffer stores the frames in it
         (``SequenceReplayBuffer.set_channels_last_frames``). Only the layout changes, not the values or the parameters.
         """
-        self.channels_last = len(self.observation_shape) == 3 and channels_last_is_faster(self.image_channels, device)
+        convolutions = len(self.observation_shape) == 3 and self.built_in_networks
+        self.channels_last = convolutions and channels_last_is_faster(self.image_channels, device)
         self.to(memory_format=torch.channels_last if self.channels_last else torch.contiguous_format)
 
     def encode(self, observations: Tensor) -> Tensor:
@@ -289,7 +285,7 @@ class LatentModel(nn.Module):
         """Latents (B, T, z_dim) -> mean of the observation Gaussian (B, T, *observation_shape)."""
         batch, steps = z.shape[:2]
         flat = z.reshape(batch * steps, self.z_dim)
-        if len(self.observation_shape) == 3:
+        if self._latent_map_input:
             flat = flat.view(batch * steps, self.z_dim, 1, 1)
         return self.decoder(flat).view(batch, steps, *self.observation_shape)
 
