@@ -1,8 +1,10 @@
-"""What DS-SLAC reads from an env: its per-step cost, action repeat and episode length."""
+"""What DS-SLAC reads from an env: its per-step cost, action repeat, episode length and whether its observations are finite."""
 
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
 
@@ -21,6 +23,29 @@ def cost_from_info(info: dict[str, Any]) -> float:
             "The env did not report a cost: DS-SLAC needs the per-step cost in info['cost'] "
             "(the safety_envs tasks report it; wrap other envs so that step() adds it)."
         ) from None
+
+
+def check_observations_finite(observations: np.ndarray, source: Callable[[int], str]) -> None:
+    """
+    Raise a ValueError when an observation holds NaN or inf, before the latent filter turns it into NaN actions.
+
+    :param observations: (n_envs, *obs_shape), one row per env (integer frames cannot hold NaN: not looked at)
+    :param source: row -> the words that name where that observation came from ("env 0 (<TimeLimit<...>>) at timestep
+        120"), called for the first bad row only
+    """
+    if not np.issubdtype(observations.dtype, np.floating):
+        return
+    bad = ~np.isfinite(observations)
+    if not bad.any():
+        return
+    row = int(np.flatnonzero(bad.reshape(len(observations), -1).any(axis=1))[0])
+    where = [tuple(int(i) for i in index) for index in np.argwhere(bad[row])[:5]]
+    observation = np.array2string(observations[row], threshold=32, edgeitems=4)
+    raise ValueError(
+        f"{source(row)} gave an observation with NaN or inf in {int(bad[row].sum())} of its {bad[row].size} values "
+        f"(first at {where}): {observation}. DS-SLAC's latent filter cannot take it: fix the env, or wrap it so that "
+        "its observations are finite (replace a missing sensor reading, clip an unbounded one)."
+    )
 
 
 def _attribute(env: gym.Env | VecEnv, name: str) -> Any:

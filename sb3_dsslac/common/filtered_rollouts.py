@@ -16,7 +16,7 @@ from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn, 
 from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_dsslac.common.env_info import cost_from_info
+from sb3_dsslac.common.env_info import check_observations_finite, cost_from_info
 from sb3_dsslac.common.policies import LatentPolicy
 from sb3_dsslac.common.timing import TimeAccount
 from sb3_dsslac.nn.numerics import raise_if_action_not_finite
@@ -71,6 +71,7 @@ class FilteredRollouts(OffPolicyAlgorithm):
         during the warm-up (they advance the filter too), the stochastic actor afterwards. No action noise.
         """
         assert self._last_obs is not None and isinstance(self._last_obs, np.ndarray)
+        check_observations_finite(self._last_obs, self._env_at_this_step)
         if self._last_filter_state is None:
             self._last_filter_state = self.policy.initial_state(n_envs)
         observation = th.as_tensor(self._last_obs, device=self.device)
@@ -87,6 +88,11 @@ class FilteredRollouts(OffPolicyAlgorithm):
         buffer_action = scaled_action.cpu().numpy()
         raise_if_action_not_finite(buffer_action, self.num_timesteps, self._n_updates)
         return self.policy.unscale_action(buffer_action), buffer_action
+
+    def _env_at_this_step(self, index: int) -> str:
+        """The words that name training env ``index`` (its wrappers and id) and the agent step, for an error."""
+        assert self.env is not None
+        return f"Training env {index} ({self.env.env_method('__str__', indices=[index])[0]}) at timestep {self.num_timesteps}"
 
     def collect_rollouts(
         self,
@@ -113,6 +119,10 @@ class FilteredRollouts(OffPolicyAlgorithm):
         dones: np.ndarray,
         infos: list[dict[str, Any]],
     ) -> None:
+        for index in np.flatnonzero(dones):  # a last observation, stored but never filtered: checked here
+            terminal = infos[index].get("terminal_observation")
+            if isinstance(terminal, np.ndarray):
+                check_observations_finite(terminal[None], lambda _, index=index: self._env_at_this_step(int(index)))
         costs = np.array([cost_from_info(info) for info in infos])
         self._episode_costs += costs
         self.total_cost += float(costs.sum())
