@@ -136,7 +136,8 @@ class SafetyGymEnv(gym.Env):
             self.model.opt.sleep_tolerance = SLEEP_TOLERANCE
         self.data = mujoco.MjData(self.model)
         self.sim_dt = self.model.opt.timestep * self.task_spec.frameskip  # s per simulator step
-        self.metadata = {**self.metadata, "render_fps": round(1.0 / (self.sim_dt * self.action_repeat))}
+        # One frame per agent step: 25 at Safety-Gym's 0.002 s timestep, frameskip 10 and action repeat 2; 12.5 at 4
+        self.metadata = {**self.metadata, "render_fps": round(1.0 / (self.sim_dt * self.action_repeat), 6)}
 
         ctrlrange = self.model.actuator_ctrlrange
         self._ctrl_low, self._ctrl_high = ctrlrange[:, 0].copy(), ctrlrange[:, 1].copy()

@@ -32,6 +32,8 @@ class ActionRepeat(gym.Wrapper):
             raise ValueError(f"repeat must be a positive integer, got {repeat!r}")
         super().__init__(env)
         self.repeat = int(repeat)
+        if env.metadata.get("render_fps"):  # one frame per step of this wrapper: the wrapped env's rate / repeat
+            self.metadata = {**env.metadata, "render_fps": env.metadata["render_fps"] / self.repeat}
 
     def step(self, action: np.ndarray):
         total_reward = 0.0

@@ -7,6 +7,7 @@ import mujoco
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env as gym_check_env
+from gymnasium.utils.passive_env_checker import env_render_passive_checker
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 from stable_baselines3.common.monitor import Monitor
 
@@ -63,6 +64,24 @@ def test_env_checkers_pixels(env_id):
         gym_check_env(env)
         sb3_check_env(env, warn=True)
     env.close()
+
+
+@pytest.mark.parametrize("action_repeat", [1, 2, 4])
+def test_render_fps_is_one_frame_per_agent_step(action_repeat):
+    env = SafetyGymEnv(action_repeat=action_repeat, render_mode="rgb_array")
+    agent_step_seconds = env.model.opt.timestep * env.task_spec.frameskip * action_repeat
+    assert env.metadata["render_fps"] == pytest.approx(1.0 / agent_step_seconds)
+    assert env.metadata["render_fps"] == {1: 50, 2: 25, 4: 12.5}[action_repeat]  # Safety-Gym's 0.002 s x 10 substeps
+    assert SafetyGymEnv.metadata["render_fps"] == 25  # the class's, for the default repeat, is left alone
+    wrapped = ActionRepeat(SafetyGymEnv(action_repeat=1, render_mode="rgb_array"), repeat=action_repeat)
+    assert wrapped.metadata["render_fps"] == pytest.approx(env.metadata["render_fps"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # gymnasium's "No render fps was declared" and its type checks
+        for checked in (env, wrapped):
+            checked.reset(seed=0)
+            env_render_passive_checker(checked)
+    env.close()
+    wrapped.close()
 
 
 def test_env_checkers_state_and_both():
