@@ -142,7 +142,7 @@ def test_two_episodes_end_to_end(benchmarks, tiny_model: Path, tmp_path: Path, m
     goal_memory.main()
     text, printed = out.read_text(), capsys.readouterr().out
     assert text.startswith(f"# Goal memory: tiny\n\n`python benchmarks/goal_memory.py {tiny_model} --episodes 2 --seed 7")
-    assert printed[printed.index("| steps |") : printed.index("\n\nwritten to")] in text  # the table printed is written
+    assert printed[printed.index("| agent steps |") : printed.index("\n\nwritten to")] in text  # the table printed is written
     assert "2 episodes (500 agent steps)" in text and "reset seeds 7-8" in text and "'action_repeat': 4" in text
     assert goal_memory.cpu_model() in text
     for name in goal_memory.STEP_KINDS:
