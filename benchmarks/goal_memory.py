@@ -44,7 +44,7 @@ from machine import cpu_model
 
 from sb3_dsslac import DSSLAC
 from sb3_dsslac.app.rollouts import make_model_env
-from sb3_dsslac.app.runs import FINAL_MODEL, find_run_config
+from sb3_dsslac.app.runs import CHECKPOINT_DIR, FINAL_MODEL, find_run_config
 from sb3_dsslac.common.env_info import cost_from_info
 
 DEFAULT_ENV = "SafetyGym/PointGoal1-v0"
@@ -310,8 +310,12 @@ def write_whole(path: Path, text: str) -> None:
 
 
 def model_name(model_path: Path) -> str:
-    """The name of the results file: the run folder's name for its model.zip, else the model file's stem."""
-    return model_path.parent.name if model_path.name == FINAL_MODEL else model_path.stem
+    """The model's name in the results: its run folder's for a model.zip, with the stem for a checkpoint, else its stem."""
+    if model_path.name == FINAL_MODEL:
+        return model_path.parent.name
+    if model_path.parent.name == CHECKPOINT_DIR:
+        return f"{model_path.parent.parent.name}_{model_path.stem}"
+    return model_path.stem
 
 
 def main() -> None:

@@ -76,6 +76,14 @@ def test_the_halves_and_the_folds_keep_episodes_whole(benchmarks) -> None:
     assert [fold.tolist() for fold in single] == [list(block) for block in np.array_split(np.arange(23), CV_FOLDS)]
 
 
+def test_the_results_are_named_after_the_run(benchmarks) -> None:
+    from goal_memory import model_name
+
+    assert model_name(Path("runs/pid_seed20/model.zip")) == "pid_seed20"
+    assert model_name(Path("runs/pid_seed20/checkpoints/dsslac_75000_steps.zip")) == "pid_seed20_dsslac_75000_steps"
+    assert model_name(Path("elsewhere/agent.zip")) == "agent"
+
+
 def synthetic_steps(n_episodes: int, steps: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Random bearings (rad) of ``n_episodes`` x ``steps`` steps and the episode of each."""
     rng = np.random.default_rng(seed)
