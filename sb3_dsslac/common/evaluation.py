@@ -10,6 +10,7 @@ from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_dsslac.common.atomic import atomic_file
 from sb3_dsslac.common.env_info import cost_from_info
 from sb3_dsslac.common.timing import measured
 
@@ -68,7 +69,8 @@ class CostEvalCallback(EvalCallback):
     """
     ``EvalCallback`` that also measures the episode cost: records ``eval/mean_cost`` and ``eval/std_cost``, writes
     ``costs`` into ``evaluations.npz`` and keeps the best model feasibility-first (first under ``cost_limit``,
-    then the highest mean reward; among infeasible evaluations, the lowest mean cost).
+    then the highest mean reward; among infeasible evaluations, the lowest mean cost). Both files are written whole or
+    not at all (``common.atomic``), so a run killed while it writes them keeps the earlier ones.
 
     :param eval_env: the evaluation env; must report ``info["cost"]``
     :param cost_limit: the episode cost budget that decides feasibility
@@ -98,13 +100,15 @@ class CostEvalCallback(EvalCallback):
         self.evaluations_length.append(results.lengths)
         self.evaluations_costs.append(results.costs)
         if self.log_path is not None:
-            np.savez(
-                self.log_path,
-                timesteps=self.evaluations_timesteps,
-                results=self.evaluations_results,
-                ep_lengths=self.evaluations_length,
-                costs=self.evaluations_costs,
-            )
+            # EvalCallback's log_path is <folder>/evaluations: np.savez adds the suffix to a name, not to an open file
+            with atomic_file(f"{self.log_path}.npz") as file:
+                np.savez(
+                    file,
+                    timesteps=self.evaluations_timesteps,
+                    results=self.evaluations_results,
+                    ep_lengths=self.evaluations_length,
+                    costs=self.evaluations_costs,
+                )
         self.last_mean_reward, self.last_mean_cost = mean_reward, mean_cost
         if self.verbose >= 1:
             print(
@@ -124,7 +128,8 @@ class CostEvalCallback(EvalCallback):
             self.best_score = score
             self.best_mean_reward = mean_reward
             if self.best_model_save_path is not None:
-                self.model.save(os.path.join(self.best_model_save_path, "best_model"))
+                with atomic_file(os.path.join(self.best_model_save_path, "best_model.zip")) as file:
+                    self.model.save(file)
             if self.callback_on_new_best is not None:
                 continue_training = self.callback_on_new_best.on_step()
         if self.callback is not None:
