@@ -79,8 +79,9 @@ def test_train_writes_the_run_folder(trained_run: Path) -> None:
     evaluations = np.load(trained_run / "evaluations.npz")
     assert evaluations["timesteps"].tolist() == [40, 80, 120]
     assert evaluations["costs"].shape == (3, 2)
-    # Only the newest checkpoint is kept, with its replay buffer
+    # Only the newest checkpoint is kept, with its replay buffer and the marker written last
     assert sorted(path.name for path in (trained_run / "checkpoints").iterdir()) == [
+        "dsslac_120_steps.json",
         "dsslac_120_steps.zip",
         "dsslac_replay_buffer_120_steps.pkl",
     ]

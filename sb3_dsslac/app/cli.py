@@ -15,7 +15,15 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from sb3_dsslac.app.rollouts import evaluate, format_episodes
-from sb3_dsslac.app.runs import CONFIG_FILE, TrainConfig, find_run_config, parse_hyperparams, resume, train
+from sb3_dsslac.app.runs import (
+    CONFIG_FILE,
+    RunStoppedError,
+    TrainConfig,
+    find_run_config,
+    parse_hyperparams,
+    resume,
+    train,
+)
 from sb3_dsslac.common.env_info import action_repeat_of
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.presets import PRESET_ENV_KWARGS, PRESETS, preset_env_kwargs, preset_hyperparams
@@ -386,7 +394,7 @@ def _beliefs_command(args: argparse.Namespace) -> None:
 
 
 def _tune_command(args: argparse.Namespace) -> None:
-    from sb3_dsslac.app.hpo import TuneSpec, summarize_study, tune
+    from sb3_dsslac.app.hpo import TuneSpec, summarize_study, tune, write_trials
 
     hyperparams, env_kwargs, action_repeat = _checked_run_inputs(args, {"device": "--device"})
     if args.timesteps // action_repeat < args.n_evaluations:
@@ -410,14 +418,14 @@ def _tune_command(args: argparse.Namespace) -> None:
     )
     print(summarize_study(study))
     if args.out is not None:
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        path = Path(args.out) / f"{args.study_name}_trials.csv"
-        study.trials_dataframe().to_csv(path, index=False)
-        print(f"trials: {path}")
+        print(f"trials: {write_trials(study, args.out)}")
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run a command; errors of bad input end with a one-line message and exit status 2."""
+    """
+    Run a command; errors of bad input end with a one-line message and exit status 2, a run that could not write its
+    folder (a full disk, no permission) with a one-line message and exit status 1.
+    """
     args = build_parser().parse_args(argv)
     command = {
         "train": _train_command,
@@ -431,4 +439,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError, FileExistsError) as error:
         print(error_line(error), file=sys.stderr)
         return 2
+    except RunStoppedError as error:
+        print(error_line(error), file=sys.stderr)
+        return 1
     return 0

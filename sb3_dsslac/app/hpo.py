@@ -12,6 +12,7 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeVar
 
 import gymnasium as gym
@@ -29,6 +30,7 @@ from sqlalchemy.exc import ArgumentError, IntegrityError, OperationalError, Prog
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dsslac.app.experiment import Experiment
+from sb3_dsslac.common.atomic import write_atomic
 from sb3_dsslac.common.env_info import action_repeat_of
 from sb3_dsslac.common.envs import make_env, make_eval_env
 from sb3_dsslac.common.evaluation import CostEvalCallback
@@ -343,3 +345,14 @@ def summarize_study(study: optuna.Study) -> str:
         lines.append(f"best feasible trial #{best.number}: eval reward {best.value:.3f}, cost - budget {over:.2f}")
         lines += [f"  {name}: {value}" for name, value in best.params.items()]
     return "\n".join(lines)
+
+
+def write_trials(study: optuna.Study, folder: str | Path) -> Path:
+    """
+    ``folder/<study name>_trials.csv``: every trial of the study, one row each (``Study.trials_dataframe``), written
+    whole or not at all (``common.atomic``); several workers may write it, and a reader sees one of their files whole.
+    """
+    path = Path(folder) / f"{study.study_name}_trials.csv"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, study.trials_dataframe().to_csv(index=False))
+    return path

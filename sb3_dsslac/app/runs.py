@@ -3,7 +3,9 @@ Training runs of the thesis's protocol: the run config, the run folder (``config
 checkpoints), training and resuming. Steps of a ``TrainConfig`` are simulator steps; DSSLAC counts agent steps.
 """
 
+import contextlib
 import csv
+import errno
 import json
 import re
 import shlex
@@ -17,14 +19,19 @@ from typing import Any
 import gymnasium as gym
 import torch as th
 import yaml
-from stable_baselines3.common.callbacks import CheckpointCallback
-from stable_baselines3.common.logger import CSVOutputFormat, Logger, make_output_format
+from stable_baselines3.common.logger import CSVOutputFormat, Logger, filter_excluded_keys, make_output_format
 
+from sb3_dsslac.app.checkpoints import (
+    CHECKPOINT_DIR,
+    LatestCheckpointCallback,
+    find_checkpoint,
+    load_newest_checkpoint,
+)
+from sb3_dsslac.common.atomic import atomic_file, remove_partial_files, write_atomic
 from sb3_dsslac.common.env_info import action_repeat_of, episode_length_of
 from sb3_dsslac.common.envs import make_eval_env, make_train_env
 from sb3_dsslac.common.evaluation import CostEvalCallback, eval_policy_name
 from sb3_dsslac.app.experiment import Experiment
-from sb3_dsslac.common.timing import measured
 from sb3_dsslac.dsslac import DSSLAC
 from sb3_dsslac.presets import preset_hyperparams
 from sb3_dsslac.version import __version__
@@ -32,9 +39,10 @@ from sb3_dsslac.version import __version__
 CONFIG_FILE = "config.yaml"
 TIME_ACCOUNT_FILE = "time_account.json"
 FINAL_MODEL = "model.zip"
-CHECKPOINT_DIR = "checkpoints"
-CHECKPOINT_PREFIX = "dsslac"
+PROGRESS_FILE = "progress.csv"
 EVAL_SEED_OFFSET = 10_000
+# The errors of a full disk (or quota) and of a folder the run may not write, which stop a run with one error line
+UNWRITABLE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS})
 
 
 class _HyperparamLoader(yaml.SafeLoader):
@@ -81,13 +89,8 @@ class TrainConfig(Experiment):
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
 
-@dataclass
-class Checkpoint:
-    """The newest complete checkpoint of a run folder: model, replay buffer, and its agent steps."""
-
-    model: Path
-    replay_buffer: Path
-    timesteps: int
+class RunStoppedError(RuntimeError):
+    """A run stopped because it could not write its folder (a full disk, no permission); the message says what to do."""
 
 
 def default_run_dir(config: TrainConfig, root: str | Path = "runs") -> Path:
@@ -107,54 +110,62 @@ def load_config(run_dir: str | Path) -> TrainConfig:
     return TrainConfig(**{f.name: saved[f.name] for f in fields(TrainConfig) if f.name in saved})
 
 
-def find_checkpoint(run_dir: str | Path) -> Checkpoint | None:
-    """The newest checkpoint of ``run_dir`` whose model and replay buffer were both written, or None."""
-    folder = Path(run_dir) / CHECKPOINT_DIR
-    found = []
-    for model_path in folder.glob(f"{CHECKPOINT_PREFIX}_*_steps.zip"):
-        steps = model_path.stem.removeprefix(f"{CHECKPOINT_PREFIX}_").removesuffix("_steps")
-        buffer_path = folder / f"{CHECKPOINT_PREFIX}_replay_buffer_{steps}_steps.pkl"
-        if steps.isdigit() and buffer_path.is_file():
-            found.append(Checkpoint(model_path, buffer_path, int(steps)))
-    return max(found, key=lambda checkpoint: checkpoint.timesteps, default=None)
+class ProgressCSV(CSVOutputFormat):
+    """
+    SB3's CSV writer of ``progress.csv``, its rewrites atomic (``common.atomic``): the one a new column makes (SB3
+    rewrites the file in place, so a kill then lost every row) and the one of a resume. Rows are appended.
+
+    :param path: the file
+    :param resumed_from: the agent steps of the checkpoint a resumed run starts from, whose rows up to them are kept
+        (None: a new run, an empty file)
+    """
+
+    def __init__(self, path: Path, resumed_from: int | None):
+        lines = _rows_up_to(path, resumed_from) if resumed_from is not None and path.is_file() else []
+        write_atomic(path, "".join(lines))
+        self.path = path
+        self.file = path.open("a+")
+        self.keys = lines[0].rstrip("\n").split(",") if lines else []
+        self.separator = ","
+        self.quotechar = '"'
+
+    def write(self, key_values: dict[str, Any], key_excluded: dict[str, tuple[str, ...]], step: int = 0) -> None:
+        new_keys = filter_excluded_keys(key_values, key_excluded, "csv").keys() - set(self.keys)
+        if new_keys:
+            self._add_columns(sorted(new_keys))
+        super().write(key_values, key_excluded, step)
+
+    def _add_columns(self, names: list[str]) -> None:
+        """Rewrite the file whole with ``names`` added to the header and empty values for them in the earlier rows."""
+        self.file.seek(0)
+        lines = self.file.readlines()
+        header = ",".join([*self.keys, *names]) + "\n"
+        write_atomic(self.path, header + "".join(line.rstrip("\n") + "," * len(names) + "\n" for line in lines[1:]))
+        self.file.close()
+        self.file = self.path.open("a+")
+        self.keys.extend(names)
 
 
-class LatestCheckpointCallback(CheckpointCallback):
-    """``CheckpointCallback`` (model and replay buffer) that deletes the older checkpoints once a new one is written."""
+def _rows_up_to(path: Path, max_timesteps: int) -> list[str]:
+    """The header and the rows of ``path`` logged at or before ``max_timesteps`` (or without a step); a last row cut
+    short by a kill is dropped."""
+    lines = path.read_text().splitlines(keepends=True)
+    if lines and not lines[-1].endswith("\n"):
+        lines.pop()
+    if not lines:
+        return []
+    header = lines[0].rstrip("\n").split(",")
+    column = header.index("time/total_timesteps") if "time/total_timesteps" in header else None
 
-    def _on_step(self) -> bool:
-        if self.n_calls % self.save_freq == 0:
-            with measured(self.model, "checkpoints"):
-                self._save_latest()
-        return True
+    def before_checkpoint(line: str) -> bool:
+        value = next(csv.reader([line]))[column] if column is not None else ""
+        return value == "" or float(value) <= max_timesteps
 
-    def _save_latest(self) -> None:
-        super()._on_step()
-        for path in Path(self.save_path).glob(f"{self.name_prefix}_*_steps.*"):
-            if not path.stem.endswith(f"_{self.num_timesteps}_steps"):
-                path.unlink()
-
-
-def _resumed_csv(path: Path, max_timesteps: int | None) -> CSVOutputFormat:
-    """A ``progress.csv`` writer; when resuming, it keeps the earlier rows up to ``max_timesteps`` and appends."""
-    old_lines = path.read_text().splitlines(keepends=True) if max_timesteps is not None and path.is_file() else []
-    writer = CSVOutputFormat(str(path))
-    if old_lines:
-        header = old_lines[0].rstrip("\n").split(",")
-        column = header.index("time/total_timesteps") if "time/total_timesteps" in header else None
-
-        def before_checkpoint(line: str) -> bool:
-            value = next(csv.reader([line]))[column] if column is not None else ""
-            return value == "" or float(value) <= max_timesteps  # type: ignore[operator]
-
-        writer.file.writelines([old_lines[0], *filter(before_checkpoint, old_lines[1:])])
-        writer.file.flush()
-        writer.keys = header
-    return writer
+    return [lines[0], *filter(before_checkpoint, lines[1:])]
 
 
 def _make_logger(run_dir: Path, verbose: int, resume_from: int | None) -> Logger:
-    formats = [_resumed_csv(run_dir / "progress.csv", resume_from), make_output_format("tensorboard", str(run_dir))]
+    formats = [ProgressCSV(run_dir / PROGRESS_FILE, resume_from), make_output_format("tensorboard", str(run_dir))]
     if verbose >= 1:
         formats.insert(0, make_output_format("stdout", str(run_dir)))
     return Logger(str(run_dir), formats)
@@ -233,7 +244,7 @@ def train(config: TrainConfig, out: str | Path | None = None) -> Path:
     }
     model = None
     try:
-        (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(saved, sort_keys=False))
+        write_atomic(run_dir / CONFIG_FILE, yaml.safe_dump(saved, sort_keys=False))
         model = DSSLAC("LatentPolicy", env, seed=config.seed, device=config.device, verbose=config.verbose, **hyperparams)
         _learn(model, config, run_dir, eval_seed, resumed=False)
     except BaseException:
@@ -247,7 +258,7 @@ def train(config: TrainConfig, out: str | Path | None = None) -> Path:
 
 def _holds_results(run_dir: Path) -> bool:
     """Whether a run folder holds anything a run writes once it is going: log rows, evaluations, checkpoints, models."""
-    progress = run_dir / "progress.csv"
+    progress = run_dir / PROGRESS_FILE
     logged = progress.is_file() and len(progress.read_text().splitlines()) > 1
     saved = any(run_dir.glob("*.zip")) or any((run_dir / CHECKPOINT_DIR).glob("*"))
     return logged or saved or (run_dir / "evaluations.npz").is_file()
@@ -267,8 +278,9 @@ def _remove_new_entries(run_dir: Path, existing: set[Path] | None) -> None:
 
 def resume(run_dir: str | Path, sim_steps: int | None = None) -> Path:
     """
-    Continue a run that was stopped from its newest checkpoint (model, replay buffer, Lagrange multiplier); the rows of
-    ``progress.csv`` and ``evaluations.npz`` up to the checkpoint are kept, later ones are redone.
+    Continue a run that was stopped from its newest complete checkpoint that loads (model, replay buffer, Lagrange
+    multiplier; ``load_newest_checkpoint``); the rows of ``progress.csv`` and ``evaluations.npz`` up to the checkpoint
+    are kept, later ones are redone. What writers killed with the run left half-written is removed.
 
     :param run_dir: the run folder
     :param sim_steps: a new total of simulator steps (None: the run's own)
@@ -282,15 +294,14 @@ def resume(run_dir: str | Path, sim_steps: int | None = None) -> Path:
         config.sim_steps = sim_steps
     if config.threads is not None:
         th.set_num_threads(config.threads)
-    checkpoint = find_checkpoint(run_dir)
-    if checkpoint is None:
-        raise FileNotFoundError(
-            f"No checkpoint (model and replay buffer) in {run_dir / CHECKPOINT_DIR} to resume from: "
-            f"the run stopped before its first checkpoint; delete the folder and start it again with `train`"
-        )
+    for folder in (run_dir, run_dir / CHECKPOINT_DIR):
+        remove_partial_files(folder)
     env = make_train_env(config.env, config.n_envs, config.obs_type, config.env_kwargs)
-    model = DSSLAC.load(checkpoint.model, env=env, device=config.device)
-    model.load_replay_buffer(checkpoint.replay_buffer)
+    try:
+        model = load_newest_checkpoint(run_dir, env, config.device)
+    except BaseException:
+        env.close()
+        raise
     model.verbose = config.verbose
     model.set_random_seed(config.seed + model.num_timesteps)
     eval_seed = config.seed + EVAL_SEED_OFFSET if config.eval_seed is None else config.eval_seed
@@ -318,10 +329,7 @@ def _learn(model: DSSLAC, config: TrainConfig, run_dir: Path, eval_seed: int, re
     if resumed and (run_dir / "evaluations.npz").is_file():
         evaluation.restore(str(run_dir / "evaluations.npz"), start)
     checkpoints = LatestCheckpointCallback(
-        save_freq=max(config.checkpoint_every // action_repeat // model.n_envs, 1),
-        save_path=str(run_dir / CHECKPOINT_DIR),
-        name_prefix=CHECKPOINT_PREFIX,
-        save_replay_buffer=True,
+        save_freq=max(config.checkpoint_every // action_repeat // model.n_envs, 1), folder=run_dir / CHECKPOINT_DIR
     )
     # One env: the callbacks' step counters continue from the checkpoint, so evaluations stay on their grid.
     # The evaluation runs before the checkpoint of the same step, so a checkpoint never misses its evaluation.
@@ -335,9 +343,16 @@ def _learn(model: DSSLAC, config: TrainConfig, run_dir: Path, eval_seed: int, re
                 reset_num_timesteps=not resumed,
                 progress_bar=config.progress_bar,
             )
-        model.save(run_dir / FINAL_MODEL)
-    finally:
+        with atomic_file(run_dir / FINAL_MODEL) as file:
+            model.save(file)
         write_time_account(model, run_dir)
+    except BaseException as error:
+        with contextlib.suppress(OSError):  # the account of a stopped run where the disk takes it; the first error counts
+            write_time_account(model, run_dir)
+        if isinstance(error, OSError) and error.errno in UNWRITABLE_ERRNOS:
+            raise RunStoppedError(_stopped_message(error, model, run_dir)) from error
+        raise
+    finally:
         if config.verbose >= 1:
             print(f"time account: {model.time_account.format()}")
         eval_env.close()
@@ -346,10 +361,27 @@ def _learn(model: DSSLAC, config: TrainConfig, run_dir: Path, eval_seed: int, re
             model.env.close()
 
 
+def _stopped_message(error: OSError, model: DSSLAC, run_dir: Path) -> str:
+    """What a run that could not write its folder says: the file, the reason, and how to go on."""
+    where = error.filename or run_dir
+    checkpoint = find_checkpoint(run_dir)
+    if checkpoint is None:
+        advice = (
+            "it had no checkpoint yet: free space (or make the folder writable) and start it again with `train`, "
+            "into another --out or after deleting this one"
+        )
+    else:
+        advice = (
+            f"its checkpoint at {checkpoint.timesteps} agent steps is complete: free space (or make the folder writable) "
+            f"and continue it with `train --resume {run_dir}`"
+        )
+    return f"cannot write {where}: {error.strerror}; the run stopped at {model.num_timesteps} agent steps, and {advice}"
+
+
 def write_time_account(model: DSSLAC, run_dir: Path) -> None:
     """``run_dir/time_account.json``: the run's wall seconds by activity, its wall and its process's CPU seconds (ms)."""
     summary = {name: round(seconds, 3) for name, seconds in model.time_account.summary().items()}
-    (run_dir / TIME_ACCOUNT_FILE).write_text(json.dumps(summary, indent=1) + "\n")
+    write_atomic(run_dir / TIME_ACCOUNT_FILE, json.dumps(summary, indent=1) + "\n")
 
 
 def read_time_account(run_dir: str | Path) -> dict[str, float] | None:
