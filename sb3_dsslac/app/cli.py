@@ -76,6 +76,7 @@ PRESET_SUMMARIES: dict[str, str] = {
     "cpu_pixels32_bounded": "cpu_pixels32 with bounded latents (every std in [0.1, 2], every |mean| <= 10)",
     "cpu_pixels32_pid": "cpu_pixels32_bounded learning from 4 transitions per window, with the PID multiplier",
     "cpu_pixels32_prev_action": "cpu_pixels32_pid with the previous action beside the belief (actor and critics)",
+    "cpu_pixels32_gru": "cpu_pixels32_pid with a deterministic GRU z2 (an RSSM's recurrent state) in the latent model",
 }
 
 
