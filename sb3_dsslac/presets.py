@@ -66,6 +66,27 @@ CPU_PIXELS32_BOUNDED: dict[str, Any] = {
     "policy_kwargs": {**CPU_PIXELS["policy_kwargs"], "latent_min_std": 0.1, "latent_max_std": 2.0, "latent_mean_bound": 10.0},
 }
 
+# cpu_pixels32_bounded with the departures that learned PointGoal1 sooner and taxed it less (seeds 20 and 21, 300k
+# simulator steps, last three evaluations: 7.82 at cost 23.0 against 6.21 at 22.3 with the SGD rule; the preset's
+# seeds 0-2 6.30 at 19.4):
+# - the actor and critics learn from the last 4 transitions of every window (128 samples per update, not 32): the
+#   reward came two to three times sooner (6-9 by 80-120k simulator steps, where the preset stood at 0-2);
+# - 8 quantile fractions instead of 32: the IQN cost critic runs on 4x the rows, and 8 keep the update's cost at
+#   1.01x the preset's (32 ran at 0.74x);
+# - the PID multiplier (kp 0.004, ki 1e-4, kd 0) on the smoothed episode cost, aiming at 20: it held at 0.35-0.5
+#   from 150k where the SGD rule's rose to 1.24 and pressed the reward back down.
+# The update costs cpu_pixels32_bounded's: 109-110 CPU minutes per 300k simulator steps on an AMD EPYC host that ran
+# it at 14.8 updates/s (about 50 on the host behind cpu_pixels32_bounded's table, which ran it at 35)
+CPU_PIXELS32_PID: dict[str, Any] = {
+    **CPU_PIXELS32_BOUNDED,
+    "actor_critic_transitions": 4,
+    "n_quantiles": 8,
+    "lagrange": "pid",
+    "pid_kp": 0.004,
+    "pid_ki": 1e-4,
+    "pid_kd": 0.0,
+}
+
 PRESETS: dict[str, dict[str, Any]] = {
     # DSSLAC's defaults are the thesis's Table 5.2; the reference code's step-size halving on top
     "thesis": {"lr_decay_milestone": THESIS_LR_DECAY_MILESTONE},
@@ -123,51 +144,21 @@ PRESETS: dict[str, dict[str, Any]] = {
     "cpu_pixels": CPU_PIXELS,
     "cpu_pixels32": CPU_PIXELS32,
     "cpu_pixels32_bounded": CPU_PIXELS32_BOUNDED,
-    # cpu_pixels32_bounded with the departures that learned PointGoal1 sooner and taxed it less (seeds 20 and 21, 300k
-    # simulator steps, last three evaluations: 7.82 at cost 23.0 against 6.21 at 22.3 with the SGD rule; the preset's
-    # seeds 0-2 6.30 at 19.4):
-    # - the actor and critics learn from the last 4 transitions of every window (128 samples per update, not 32): the
-    #   reward came two to three times sooner (6-9 by 80-120k simulator steps, where the preset stood at 0-2);
-    # - 8 quantile fractions instead of 32: the IQN cost critic runs on 4x the rows, and 8 keep the update's cost at
-    #   1.01x the preset's (32 ran at 0.74x);
-    # - the PID multiplier (kp 0.004, ki 1e-4, kd 0) on the smoothed episode cost, aiming at 20: it held at 0.35-0.5
-    #   from 150k where the SGD rule's rose to 1.24 and pressed the reward back down.
-    # The update costs cpu_pixels32_bounded's: 109-110 CPU minutes per 300k simulator steps on an AMD EPYC host that ran
-    # it at 14.8 updates/s (about 50 on the host behind cpu_pixels32_bounded's table, which ran it at 35)
-    "cpu_pixels32_pid": {
-        **CPU_PIXELS32_BOUNDED,
-        "actor_critic_transitions": 4,
-        "n_quantiles": 8,
-        "lagrange": "pid",
-        "pid_kp": 0.004,
-        "pid_ki": 1e-4,
-        "pid_kd": 0.0,
-    },
+    "cpu_pixels32_pid": CPU_PIXELS32_PID,
     # cpu_pixels32_pid with the previous action beside the belief as the actor's and the critics' input: out of sight of
     # the goal, the belief (2-4 frames of memory) does not say which way the agent was turning, and holding a turn's
     # direction recovered 60-70% of a scripted search's reward (benchmarks/results/goal_out_of_view.md). It learns from
     # the last 3 transitions of each window (96 samples per update): the first frame's previous action is outside it.
     # On PointGoal1 it holds its turns more often but pays in cost: 7.63 at cost 25.5 by 300k, cpu_pixels32_pid's 7.82 at 23.0
     "cpu_pixels32_prev_action": {
-        **CPU_PIXELS32_BOUNDED,
+        **CPU_PIXELS32_PID,
         "actor_critic_transitions": 3,
-        "n_quantiles": 8,
-        "lagrange": "pid",
-        "pid_kp": 0.004,
-        "pid_ki": 1e-4,
-        "pid_kd": 0.0,
         "policy_kwargs": {**CPU_PIXELS32_BOUNDED["policy_kwargs"], "previous_action_input": True},
     },
     # cpu_pixels32_pid with a deterministic GRU z2 (``latent_recurrence="gru"``, an RSSM's recurrent state) in place of
     # the Gaussian z2 transition: the Gaussian belief was measured to forget where the goal went within 2-4 frames
     "cpu_pixels32_gru": {
-        **CPU_PIXELS32_BOUNDED,
-        "actor_critic_transitions": 4,
-        "n_quantiles": 8,
-        "lagrange": "pid",
-        "pid_kp": 0.004,
-        "pid_ki": 1e-4,
-        "pid_kd": 0.0,
+        **CPU_PIXELS32_PID,
         "policy_kwargs": {**CPU_PIXELS32_BOUNDED["policy_kwargs"], "latent_recurrence": "gru"},
     },
 }
