@@ -161,14 +161,19 @@ def assert_kept(run_dir: Path, rows: pd.DataFrame, evaluations: dict[str, np.nda
 
 
 def assert_finished(run_dir: Path) -> None:
-    """The run reached its steps on the evaluation grid, with one progress row per step, and its model predicts."""
+    """
+    The run reached its steps on the evaluation grid, with one evaluation row per grid step and no row redone out of
+    order, and its model predicts. (An evaluation and an episode's end at the same step log two rows, as in SB3.)
+    """
     model = DSSLAC.load(run_dir / "model.zip")
     assert model.num_timesteps == SIM_STEPS
     action, _ = model.predict(model.observation_space.sample(), deterministic=True)
     assert model.action_space.contains(action)
     assert np.load(run_dir / "evaluations.npz")["timesteps"].tolist() == [40, 80, 120]
-    steps = pd.read_csv(run_dir / "progress.csv")["time/total_timesteps"].dropna().tolist()
-    assert steps == sorted(set(steps)) and steps[-1] == SIM_STEPS, steps
+    progress = pd.read_csv(run_dir / "progress.csv").dropna(subset=["time/total_timesteps"])
+    steps = progress["time/total_timesteps"].tolist()
+    assert steps == sorted(steps) and steps[-1] == SIM_STEPS, steps
+    assert progress.dropna(subset=["eval/mean_reward"])["time/total_timesteps"].tolist() == [40, 80, 120], steps
     assert find_checkpoint(run_dir).timesteps == SIM_STEPS  # type: ignore[union-attr]
     assert partial_files(run_dir) == []
     assert_every_file_whole(run_dir)
