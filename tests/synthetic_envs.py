@@ -18,7 +18,7 @@ class HazardPointEnv(gym.Env):
     :param report_cost: put the cost into ``info["cost"]`` (False imitates an env without costs)
     """
 
-    metadata: dict[str, Any] = {"render_modes": ["rgb_array"]}  # noqa: RUF012
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 30}  # noqa: RUF012
 
     def __init__(
         self,
