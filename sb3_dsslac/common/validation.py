@@ -29,6 +29,7 @@ from stable_baselines3.common.preprocessing import is_image_space, is_image_spac
 from sb3_dsslac.common.env_info import cost_from_info
 from sb3_dsslac.common.envs import make_env
 from sb3_dsslac.common.lagrange import LAGRANGE_RULES
+from sb3_dsslac.common.policies import LATENT_MODELS
 
 # Seeds the commands take: numpy's and Gymnasium's seeding wants [0, 2**32 - 1]; the evaluation env adds 10_000 and
 # the agent steps done to a run's seed, so the commands keep seeds below 2**31
@@ -157,7 +158,7 @@ RANGES: dict[str, Check] = {
     "latent_max_std": _POSITIVE,
     "latent_mean_bound": _POSITIVE,
     "latent_kl_balance": _numbers(0, 1),
-    "latent_recurrence": _words("gaussian", "gru"),
+    "latent_recurrence": _words(*LATENT_MODELS),
 }
 
 

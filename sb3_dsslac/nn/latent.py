@@ -200,6 +200,7 @@ class LatentModel(nn.Module):
         if kl_balance is not None and not 0.0 <= kl_balance <= 1.0:
             raise ValueError(f"kl_balance must be None or a share in [0, 1], got {kl_balance}")
         self.kl_balance = kl_balance
+        self.hidden_units = tuple(hidden_units)
         self.image_channels = tuple(int(width) for width in image_channels)
         if len(self.image_channels) != 4 or min(self.image_channels) < 1:
             raise ValueError(

@@ -3,9 +3,11 @@ The latent model with a deterministic recurrent z2, as in an RSSM (PlaNet, Dream
 a_t])`` in place of SLAC's Gaussian ``p(z2_{t+1} | z1_{t+1}, z2_t, a_t)``.
 
 In SLAC every step draws z2 afresh from a Gaussian, so what a frame showed is diluted by new noise at each step; a
-pixel agent's belief was measured to be a function of its last 2-4 frames (``benchmarks/goal_memory.py``). A gated
-deterministic state can hold what left the view for as long as its update gate keeps it. z1 keeps its prior, posterior
-and KL, so the loss, the filter and the actor-critic's inputs are ``LatentModel``'s; z2 lies in (-1, 1).
+pixel agent's belief was measured to be a function of its last 2-4 frames
+(``benchmarks/tools/diagnostics/filter_memory.py``). A gated deterministic state can hold what left the view for as
+long as its update gate keeps it; ``benchmarks/goal_memory.py`` measures how much of the goal's bearing it holds.
+z1 keeps its prior, posterior and KL, so the loss, the filter and the actor-critic's inputs are ``LatentModel``'s; z2
+lies in (-1, 1).
 """
 
 from typing import Any
@@ -57,8 +59,7 @@ class RecurrentLatentModel(LatentModel):
 
     def __init__(self, observation_shape: tuple[int, ...], action_dim: int, **kwargs: Any) -> None:
         super().__init__(observation_shape, action_dim, **kwargs)
-        hidden_units = tuple(kwargs.get("hidden_units", (256, 256)))
-        self.z2_init = DeterministicInit(self.z1_dim, self.z2_dim, hidden_units)
-        self.z2_transition = GRUTransition(self.z1_dim, self.z2_dim, action_dim, hidden_units[0])
+        self.z2_init = DeterministicInit(self.z1_dim, self.z2_dim, self.hidden_units)
+        self.z2_transition = GRUTransition(self.z1_dim, self.z2_dim, action_dim, self.hidden_units[0])
         init_weights(self.z2_init)
         init_weights(self.z2_transition.inputs)  # the GRU cell keeps torch's uniform init
