@@ -51,6 +51,10 @@ class DSSLAC(CostBudget, FilteredRollouts):
     :param batch_size: sequences per actor-critic update
     :param latent_batch_size: sequences per latent-model update
     :param sequence_length: transitions per sampled sequence (frames: ``sequence_length + 1``)
+    :param burn_in: frames before each sampled sequence that the latent model filters first, without gradient and as
+        the acting filter does (R2D2's burn-in), so that the sequences' beliefs, the latent model's loss and the actor
+        and critics learn from carry ``burn_in + sequence_length`` frames of history, as the acting filter's beliefs
+        do, and not the sequence's alone. 0: none (the thesis's: each sequence opens its own belief)
     :param actor_critic_transitions: transitions of each sampled sequence, its last ones, that the actor and critics
         learn from: 1 (the thesis's, the last) to ``sequence_length`` (all: that many times the samples per update). The
         IQN cost critic then runs on ``batch_size * actor_critic_transitions * n_quantiles`` rows: with 4 transitions,
@@ -131,6 +135,7 @@ class DSSLAC(CostBudget, FilteredRollouts):
         batch_size: int = 64,
         latent_batch_size: int = 32,
         sequence_length: int = 10,
+        burn_in: int = 0,
         actor_critic_transitions: int = 1,
         tau: float = 5e-3,
         gamma: float = 0.99,
@@ -187,7 +192,7 @@ class DSSLAC(CostBudget, FilteredRollouts):
             train_freq=train_freq,
             gradient_steps=gradient_steps,
             replay_buffer_class=SequenceReplayBuffer,
-            replay_buffer_kwargs={"sequence_length": sequence_length, **(replay_buffer_kwargs or {})},
+            replay_buffer_kwargs={"sequence_length": sequence_length, "burn_in": burn_in, **(replay_buffer_kwargs or {})},
             policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
@@ -200,6 +205,7 @@ class DSSLAC(CostBudget, FilteredRollouts):
         self.latent_pretrain_steps = latent_pretrain_steps
         self.latent_batch_size = latent_batch_size
         self.sequence_length = sequence_length
+        self.burn_in = burn_in
         self.actor_critic_transitions = actor_critic_transitions
         self.cost_gamma = cost_gamma
         # A copy: the caller's dict is not ours to fill, and may be shared by several models
@@ -307,6 +313,7 @@ class DSSLAC(CostBudget, FilteredRollouts):
             actor_max_grad_norm=self.actor_max_grad_norm,
             critic_lagrange_budget=self.critic_cost_budget if self.lagrange == "critic" else None,
             bf16=resolve_bf16(self.bf16, self.device),
+            burn_in=self.burn_in,
         )
 
     def _optimizer_names(self) -> list[str]:

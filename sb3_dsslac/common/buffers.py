@@ -31,6 +31,10 @@ class SequenceBatch(NamedTuple):
     :param rewards: (B, L) float32
     :param costs: (B, L) float32, from ``info["cost"]``
     :param terminated: (B, L) float32, 1.0 where the transition ended its episode by a true termination
+    :param episode_start_index: with a burn-in of ``K`` frames (``L`` then counts them: the fields span ``K`` + the
+        trained transitions), the index in the window of its episode's first frame, clamped to [0, ``K``]: 0 where the
+        episode began before the window, ``K`` where the trained part starts the episode (B,) int64; the frames before
+        it are another episode's or unwritten, and the burn-in restarts there. None without a burn-in
     """
 
     observations: th.Tensor
@@ -38,6 +42,16 @@ class SequenceBatch(NamedTuple):
     rewards: th.Tensor
     costs: th.Tensor
     terminated: th.Tensor
+    episode_start_index: th.Tensor | None = None
+
+    def rows(self, part: slice) -> "SequenceBatch":
+        """The windows ``part`` of the batch (a slice of its first dim), every field cut alike."""
+        return SequenceBatch(*(None if field is None else field[part] for field in self))
+
+    def without_burn_in(self, frames: int) -> "SequenceBatch":
+        """The batch without its first ``frames`` frames and transitions (the burn-in): the trained windows."""
+        fields = (self.observations, self.actions, self.rewards, self.costs, self.terminated)
+        return SequenceBatch(*(field[:, frames:] for field in fields))
 
 
 class SequenceReplayBuffer(ReplayBuffer):
@@ -68,6 +82,10 @@ class SequenceReplayBuffer(ReplayBuffer):
     :param handle_timeout_termination: If True, a time-limit truncation (``info["TimeLimit.truncated"]``)
         is not a termination
     :param sequence_length: Number of transitions ``L`` per window (``L + 1`` frames)
+    :param burn_in: Number of frames ``K`` before each window that come with it for the learner to filter without
+        gradient (``DSSLAC``'s ``burn_in``): the windows are drawn as without them (uniformly over the stored windows of
+        ``L`` transitions) and then reach back ``K`` records, so a sampled window spans ``K + L`` transitions, its
+        ``episode_start_index`` marking where its episode began if that is within them
     """
 
     observations: np.ndarray
@@ -91,6 +109,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         optimize_memory_usage: bool = False,
         handle_timeout_termination: bool = True,
         sequence_length: int = 10,
+        burn_in: int = 0,
     ) -> None:
         if not isinstance(observation_space, spaces.Box):
             raise ValueError(
@@ -104,17 +123,20 @@ class SequenceReplayBuffer(ReplayBuffer):
             )
         if sequence_length < 1:
             raise ValueError(f"sequence_length must be >= 1, got {sequence_length}")
+        if burn_in < 0:
+            raise ValueError(f"burn_in must be >= 0, got {burn_in}")
         # Skip ReplayBuffer.__init__: it would allocate per-transition observations and next_observations
         BaseBuffer.__init__(self, buffer_size, observation_space, action_space, device, n_envs=n_envs)
         self.buffer_size = buffer_size // n_envs
-        if self.buffer_size < sequence_length + 1:
+        if self.buffer_size < burn_in + sequence_length + 1:
             raise ValueError(
-                f"buffer_size={buffer_size} gives {self.buffer_size} slots per env for n_envs={n_envs}, "
-                f"fewer than the {sequence_length + 1} frames of one window (sequence_length={sequence_length})"
+                f"buffer_size={buffer_size} gives {self.buffer_size} slots per env for n_envs={n_envs}, fewer than the "
+                f"{burn_in + sequence_length + 1} frames of one window (sequence_length={sequence_length}, burn_in={burn_in})"
             )
         self.optimize_memory_usage = False
         self.handle_timeout_termination = handle_timeout_termination
         self.sequence_length = sequence_length
+        self.burn_in = burn_in
         self.frame_dtype = np.uint8 if observation_space.dtype == np.uint8 else np.float32
         self.channels_last_frames = False
 
@@ -258,14 +280,30 @@ class SequenceReplayBuffer(ReplayBuffer):
                 break
             flat = np.random.randint(0, n_candidates, size=n_draws)
             flat = flat[self._windows_valid(flat // self.n_envs, flat % self.n_envs, self.sequence_length)]
+            if self.burn_in > 0:
+                flat = flat[self._burn_in_stored(flat // self.n_envs, flat % self.n_envs)]
             accepted.append(flat)
             n_accepted += len(flat)
         if n_accepted < batch_size:
             # Few valid windows (or bad luck): enumerate them all
             valid = self.valid_windows(self.sequence_length, n_rows)
+            if self.burn_in > 0:
+                valid = valid[self._burn_in_stored(valid // self.n_envs, valid % self.n_envs)]
             accepted.append(valid[np.random.randint(0, len(valid), size=batch_size - n_accepted)])
         flat = np.concatenate(accepted)[:batch_size]
         return flat // self.n_envs, flat % self.n_envs
+
+    def _burn_in_frames(self, starts: np.ndarray, envs: np.ndarray) -> np.ndarray:
+        """How many of the ``burn_in`` records before each window are of its episode: min(step of its first frame, K)."""
+        return np.minimum(self.episode_steps[starts, envs], self.burn_in)
+
+    def _burn_in_stored(self, starts: np.ndarray, envs: np.ndarray) -> np.ndarray:
+        """
+        Whether the records of each window's episode among the ``burn_in`` before it are still stored (the ring may
+        have overwritten its oldest ones).
+        """
+        back = self._burn_in_frames(starts, envs)
+        return self._windows_valid((starts - back) % self.buffer_size, envs, back + self.sequence_length)
 
     def valid_windows(self, length: int, n_rows: int | None = None) -> np.ndarray:
         """
@@ -328,7 +366,8 @@ class SequenceReplayBuffer(ReplayBuffer):
         Draw the windows of ``n_batches`` batches at once, uniformly over valid windows, and bring the device copy up
         to date. Pass each ``[k]`` to :meth:`gather`; they stay valid until the next ``add``.
 
-        :return: (n_batches, batch_size, 2) int64 tensor of (start slot, env) on ``self.device``
+        :return: (n_batches, batch_size, 2) int64 tensor of (start slot, env) on ``self.device``; with a burn-in,
+            (n_batches, batch_size, 3): the index of the episode's first frame in the window (``SequenceBatch``) third
         """
         if not self.can_sample():
             raise ValueError(
@@ -338,18 +377,23 @@ class SequenceReplayBuffer(ReplayBuffer):
             )
         starts, envs = self._sample_starts(n_batches * batch_size)
         self._sync_device_copy()  # upload the new records once per burst, not inside the updates
-        indices = np.stack([starts, envs], axis=-1).reshape(n_batches, batch_size, 2)
+        columns = [starts, envs]
+        if self.burn_in > 0:
+            columns.append(self.burn_in - self._burn_in_frames(starts, envs))
+        indices = np.stack(columns, axis=-1).reshape(n_batches, batch_size, len(columns))
         return th.as_tensor(indices).to(self.device)
 
     def gather(self, indices: th.Tensor) -> SequenceBatch:
         """
         Cut the windows ``indices`` (B, 2) of :meth:`sample_indices` out of the stored arrays, on ``self.device``.
-        Frames keep their stored dtype (uint8 images): the policy converts them to floats on the device.
+        Frames keep their stored dtype (uint8 images): the policy converts them to floats on the device. With a burn-in
+        of ``K`` frames each window reaches ``K`` records further back (``K + L`` transitions).
         """
         stored = self._stored_tensors()
-        offsets = th.arange(self.sequence_length + 1, device=indices.device)
-        slots = (indices[:, :1] + offsets) % self.buffer_size  # (B, L+1)
-        rows = slots * self.n_envs + indices[:, 1:]  # rows of the (slot, env)-flattened arrays
+        length = self.burn_in + self.sequence_length
+        offsets = th.arange(-self.burn_in, self.sequence_length + 1, device=indices.device)
+        slots = (indices[:, :1] + offsets) % self.buffer_size  # (B, K+L+1)
+        rows = slots * self.n_envs + indices[:, 1:2]  # rows of the (slot, env)-flattened arrays
 
         def take(name: str, flat_rows: th.Tensor, length: int) -> th.Tensor:
             # index_select of whole rows: several times faster than advanced indexing, on the CPU too
@@ -357,7 +401,6 @@ class SequenceReplayBuffer(ReplayBuffer):
             flat = tensor.view(self.buffer_size * self.n_envs, *tensor.shape[2:])
             return flat.index_select(0, flat_rows).view(len(indices), length, *tensor.shape[2:])
 
-        length = self.sequence_length
         observations = take("observations", rows.view(-1), length + 1)
         if self.channels_last_frames:  # (B, L+1, H, W, C) -> (B, L+1, C, H, W), channels-last
             observations = observations.permute(0, 1, 4, 2, 3)
@@ -368,6 +411,7 @@ class SequenceReplayBuffer(ReplayBuffer):
             rewards=take("rewards", transition_rows, length),
             costs=take("costs", transition_rows, length),
             terminated=take("terminated", transition_rows, length),
+            episode_start_index=indices[:, 2] if self.burn_in > 0 else None,
         )
 
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> SequenceBatch:  # type: ignore[override]
@@ -398,6 +442,7 @@ class SequenceReplayBuffer(ReplayBuffer):
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.channels_last_frames = False  # buffers pickled before frames could be stored channels-last
+        self.burn_in = 0  # and before windows could bring a burn-in
         self.__dict__.update(state)
         for name in self._STORAGE:
             stored = state[name]

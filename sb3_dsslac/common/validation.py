@@ -117,6 +117,7 @@ RANGES: dict[str, Check] = {
     "batch_size": _AT_LEAST_ONE,
     "latent_batch_size": _AT_LEAST_ONE,
     "sequence_length": _AT_LEAST_ONE,
+    "burn_in": _NON_NEGATIVE,
     "tau": _numbers(0, 1, low_open=True),
     "gamma": _numbers(0, 1),
     "cost_gamma": _numbers(0, 1, high_open=True),

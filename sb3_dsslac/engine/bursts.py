@@ -50,7 +50,7 @@ def record_burst(logger: Logger, stats: dict[str, float]) -> None:
 
 def split_windows(batch: SequenceBatch, n_first: int) -> tuple[SequenceBatch, SequenceBatch]:
     """The first ``n_first`` windows of ``batch`` and the others: one view op per field (two slices take two)."""
-    parts = [field.split([n_first, field.shape[0] - n_first]) for field in batch]
+    parts = [(None, None) if field is None else field.split([n_first, field.shape[0] - n_first]) for field in batch]
     return SequenceBatch(*(first for first, _ in parts)), SequenceBatch(*(rest for _, rest in parts))
 
 

@@ -12,6 +12,7 @@ from sb3_dsslac.common.buffers import SequenceBatch
 from sb3_dsslac.common.lagrange import sgd_lagrange_step_on_device
 from sb3_dsslac.common.policies import LatentPolicy
 from sb3_dsslac.nn.critics import IQNCostCritic, sample_taus
+from sb3_dsslac.nn.latent import LatentStart
 from sb3_dsslac.nn.numerics import NonFiniteGuard, bf16_autocast
 from sb3_dsslac.nn.optim import adam_step, clip_grads
 
@@ -49,6 +50,7 @@ class UpdateConfig:
     :param critic_lagrange_budget: with the "critic" multiplier rule, its budget (``DSSLAC.critic_cost_budget``): every
         actor-critic update moves the multiplier from the cost critic's estimate against it. None for the other rules
     :param bf16: run the latent model's passes under bfloat16 autocast (the resolved ``DSSLAC.bf16``)
+    :param burn_in: frames before each window filtered without gradient (``DSSLAC.burn_in``; 0: none, the thesis's)
     """
 
     target_entropy: float
@@ -65,6 +67,7 @@ class UpdateConfig:
     actor_max_grad_norm: float
     critic_lagrange_budget: float | None
     bf16: bool
+    burn_in: int = 0
 
 
 class GradientStep:
@@ -151,13 +154,17 @@ class GradientStep:
         """
         latent = self.policy.latent
         if not self.config.share_latent_batch:
-            stats, latents = self.latent_update(batch, filter_batch=waiting)
+            batch, start = self.burn_in(batch)
+            if waiting is not None:
+                waiting, waiting_start = self.burn_in(waiting)
+                start = None if start is None else LatentStart.cat([start, waiting_start])
+            stats, latents = self.latent_update(batch, filter_batch=waiting, start=start)
             if waiting is not None:
                 stats.update(self.actor_critic_update(waiting, latents.float()))
         else:
             n_latent, batch_size = self.config.latent_batch_size, self.config.batch_size
-            latent_batch = SequenceBatch(*(field[:n_latent] for field in batch))
-            ac_batch = SequenceBatch(*(field[:batch_size] for field in batch))
+            batch, start = self.burn_in(batch)
+            latent_batch, ac_batch = batch.rows(slice(0, n_latent)), batch.rows(slice(0, batch_size))
             with bf16_autocast(self.config.bf16, self.device):
                 observations = self.policy.preprocess(batch.observations)
                 latent_features = latent.encode(observations[:n_latent])
@@ -165,8 +172,10 @@ class GradientStep:
                     features = latent_features.detach()
                     if batch_size > n_latent:
                         features = th.cat([features, latent.encode(observations[n_latent:batch_size])])
-                    latents = latent.latents_from_features(features[:batch_size], ac_batch.actions)
-            stats, _ = self.latent_update(latent_batch, features=latent_features)
+                    ac_start = None if start is None else start.rows(slice(0, batch_size))
+                    latents = latent.latents_from_features(features[:batch_size], ac_batch.actions, ac_start)
+            latent_start = None if start is None else start.rows(slice(0, n_latent))
+            stats, _ = self.latent_update(latent_batch, features=latent_features, start=latent_start)
             stats.update(self.actor_critic_update(ac_batch, latents.float()))
         self.guard.record(stats, pipelined=not self.config.share_latent_batch)
         self.guard.next_update()
@@ -177,26 +186,48 @@ class GradientStep:
         The actor-critic update on the actor-critic batch of a burst's last gradient step (see ``full_step``), filtered
         by the latent model as that step left it; its NaN notes name that step.
         """
+        batch, start = self.burn_in(batch)
         with th.no_grad(), bf16_autocast(self.config.bf16, self.device):
-            latents = self.policy.latent.sample_latents(self.policy.preprocess(batch.observations), batch.actions)
+            latents = self.policy.latent.sample_latents(self.policy.preprocess(batch.observations), batch.actions, start)
         stats = self.actor_critic_update(batch, latents.float())
         self.guard.record(stats, pipelined=True)
         return stats
 
     def latent_step(self, batch: SequenceBatch) -> dict[str, th.Tensor]:
         """A latent-model update alone, as in the pre-training: its loss (detached)."""
-        stats, _ = self.latent_update(batch)
+        batch, start = self.burn_in(batch)
+        stats, _ = self.latent_update(batch, start=start)
         self.guard.record(stats)
         self.guard.next_update()
         return {"latent_loss": stats["latent_loss"]}
 
+    def burn_in(self, batch: SequenceBatch) -> tuple[SequenceBatch, LatentStart | None]:
+        """
+        The windows of ``batch`` after their burn-in (``config.burn_in`` frames), and the belief the latent model's
+        filter reaches over the burn-in, without gradient; the batch itself and None without a burn-in.
+        """
+        frames = self.config.burn_in
+        if frames == 0:
+            return batch, None
+        assert batch.episode_start_index is not None, "a burn-in needs windows sampled with one (SequenceReplayBuffer)"
+        with th.no_grad(), bf16_autocast(self.config.bf16, self.device):
+            features = self.policy.latent.encode(self.policy.preprocess(batch.observations[:, :frames]))
+            start = self.policy.latent.burn_in(features, batch.actions[:, :frames], batch.episode_start_index)
+        return batch.without_burn_in(frames), start
+
     def latent_update(
-        self, batch: SequenceBatch, features: th.Tensor | None = None, filter_batch: SequenceBatch | None = None
+        self,
+        batch: SequenceBatch,
+        features: th.Tensor | None = None,
+        filter_batch: SequenceBatch | None = None,
+        start: LatentStart | None = None,
     ) -> tuple[dict[str, th.Tensor], th.Tensor | None]:
         """
         One latent-model update on a batch of sequences (``features``: their encoder features, if already computed).
 
         :param filter_batch: other sequences to filter, without gradient, in the same rollout (before the update)
+        :param start: the belief before the first frame of each sequence, ``batch``'s then ``filter_batch``'s (their
+            burn-in's), None: their first frames open the rollout
         :return: the update's detached losses, and the posterior samples of ``filter_batch`` (B', L+1, z_dim) or None
         """
         with bf16_autocast(self.config.bf16, self.device):
@@ -205,7 +236,14 @@ class GradientStep:
             if filter_batch is not None:
                 other = (self.policy.preprocess(filter_batch.observations), filter_batch.actions)
             loss, parts, latents = self.policy.latent.loss_and_filter(
-                observations, batch.actions, batch.rewards, batch.costs, batch.terminated, features=features, other=other
+                observations,
+                batch.actions,
+                batch.rewards,
+                batch.costs,
+                batch.terminated,
+                features=features,
+                other=other,
+                start=start,
             )
         self.optimizer_step(self.policy.latent_optimizer, loss, self.config.max_grad_norm)
         return {"latent_loss": loss.detach(), **parts}, latents

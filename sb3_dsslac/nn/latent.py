@@ -108,6 +108,31 @@ class LatentRollout(NamedTuple):
     z2: Tensor
 
 
+class LatentStart(NamedTuple):
+    """
+    Where a posterior rollout starts when a burn-in filtered the frames before it (``LatentModel.burn_in``): the belief
+    before the rollout's first frame and the action that led to that frame, each row restarting instead where the
+    first frame is its episode's first.
+
+    :param z2: (B, z2_dim) z2 before the first frame
+    :param action: (B, A) the action from that state to the first frame
+    :param episode_start: (B,) bool, True where the first frame is its episode's first
+    """
+
+    z2: Tensor
+    action: Tensor
+    episode_start: Tensor
+
+    def rows(self, part: slice) -> "LatentStart":
+        """The rows ``part`` of every field."""
+        return LatentStart(*(field[part] for field in self))
+
+    @staticmethod
+    def cat(starts: "list[LatentStart]") -> "LatentStart":
+        """The starts of several batches, their rows in order."""
+        return LatentStart(*(torch.cat(fields) for fields in zip(*starts, strict=True)))
+
+
 # Output channels of the encoder's stride-2 convolutions in the published networks (the decoder mirrors them)
 THESIS_IMAGE_CHANNELS = (32, 64, 128, 256)
 
@@ -290,11 +315,19 @@ class LatentModel(nn.Module):
             flat = flat.view(batch * steps, self.z_dim, 1, 1)
         return self.decoder(flat).view(batch, steps, *self.observation_shape)
 
-    def posterior(self, features: Tensor, actions: Tensor, noise: tuple[Tensor, Tensor] | None = None) -> LatentRollout:
+    def posterior(
+        self,
+        features: Tensor,
+        actions: Tensor,
+        noise: tuple[Tensor, Tensor] | None = None,
+        start: LatentStart | None = None,
+    ) -> LatentRollout:
         """
         Reparameterised posterior rollout: features (B, T+1, F), actions (B, T, A) -> fields (B, T+1, dim).
 
         :param noise: the standard normal noise of the z1 and z2 samples, (T+1, B, Z1) and (T+1, B, Z2); drawn if None
+        :param start: the belief before the first frame (a burn-in's), None: the first frame opens the rollout, as an
+            episode's first frame does
         """
         mixed_precision = autocast_enabled(features.device.type)
         if mixed_precision:  # the rollout's small matrix products run in float32 below; bfloat16 is for the convolutions
@@ -305,11 +338,14 @@ class LatentModel(nn.Module):
             z2_noise = torch.randn(frames, batch, self.z2_dim, device=features.device, dtype=features.dtype)
         else:
             z1_noise, z2_noise = noise
-        z1_mean, z1_std = self.z1_posterior_init(features[:, 0])
-        z1 = torch.addcmul(z1_mean, z1_std, z1_noise[0])
-        z2_mean, z2_std = self.z2_init(z1)
-        z2 = torch.addcmul(z2_mean, z2_std, z2_noise[0])
-        first = (z1_mean, z1_std, z1, z2)
+        if start is None:
+            z1_mean, z1_std = self.z1_posterior_init(features[:, 0])
+            z1 = torch.addcmul(z1_mean, z1_std, z1_noise[0])
+            z2_mean, z2_std = self.z2_init(z1)
+            z2 = torch.addcmul(z2_mean, z2_std, z2_noise[0])
+            first = (z1_mean, z1_std, z1, z2)
+        else:
+            first = self._continued_first_step(features[:, 0], start, z1_noise[0], z2_noise[0])
         if frames == 1:
             return LatentRollout(*(value.unsqueeze(1) for value in first))
         if mixed_precision:
@@ -322,6 +358,41 @@ class LatentModel(nn.Module):
                 features[:, 1:], actions, first, z1_noise[1:], z2_noise[1:], self.z1_posterior, self.z2_transition
             )
         return LatentRollout(*steps)
+
+    def _continued_first_step(
+        self, feature: Tensor, start: LatentStart, z1_eps: Tensor, z2_eps: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The first frame's z1 mean, std and sample and z2 sample after ``start`` (the filter's step, as ``filter_step``)."""
+        opens = start.episode_start.view(-1, 1)
+        init_mean, init_std = self.z1_posterior_init(feature)
+        step_mean, step_std = self.z1_posterior(feature, start.z2, start.action)
+        z1_mean, z1_std = torch.where(opens, init_mean, step_mean), torch.where(opens, init_std, step_std)
+        z1 = torch.addcmul(z1_mean, z1_std, z1_eps)
+        init_mean, init_std = self.z2_init(z1)
+        step_mean, step_std = self.z2_transition(z1, start.z2, start.action)
+        z2 = torch.addcmul(torch.where(opens, init_mean, step_mean), torch.where(opens, init_std, step_std), z2_eps)
+        return z1_mean, z1_std, z1, z2
+
+    def burn_in(self, features: Tensor, actions: Tensor, episode_start_index: Tensor) -> LatentStart:
+        """
+        Filter the burn-in frames before a batch of windows, as the acting filter does (posterior samples, restarting
+        at each row's episode start), without gradient: R2D2's burn-in, so that the windows' beliefs carry as much
+        history as the acting filter's.
+
+        :param features: (B, K, F) encoder features of the K burn-in frames
+        :param actions: (B, K, A) the actions leaving them (the last one leads to the window's first frame)
+        :param episode_start_index: (B,) int64 index of each row's episode's first frame, in [0, K] (K: the window's
+            first frame; the frames before it are another episode's: ``SequenceBatch.episode_start_index``)
+        :return: the start of the windows' rollout
+        """
+        with torch.no_grad():
+            z2 = features.new_zeros(features.shape[0], self.z2_dim)
+            action_prev = torch.zeros_like(actions[:, 0])
+            for index in range(features.shape[1]):
+                restart = (episode_start_index == index) | (index == 0)
+                _, z2 = self.filter_step(features[:, index], z2, action_prev, restart)
+                action_prev = actions[:, index]
+            return LatentStart(z2, action_prev, episode_start_index == features.shape[1])
 
     def _posterior_steps(
         self, features: Tensor, actions: Tensor, first: tuple[Tensor, ...], z1_noise: Tensor, z2_noise: Tensor
@@ -388,6 +459,7 @@ class LatentModel(nn.Module):
         features: Tensor | None = None,
         other: tuple[Tensor, Tensor] | None = None,
         noise: tuple[Tensor, Tensor] | None = None,
+        start: LatentStart | None = None,
     ) -> tuple[Tensor, dict[str, Tensor], Tensor | None]:
         """
         ``loss``, and the posterior samples of ``other`` sequences without gradient, from one rollout over both batches
@@ -401,6 +473,8 @@ class LatentModel(nn.Module):
         :param features: ``encode(observations)`` (B, T+1, feature_dim) if the caller already computed it
         :param other: observations (B', T+1, *observation_shape) and actions (B', T, A) of the other sequences
         :param noise: the rollout's noise (T+1, B + B', Z1) and (T+1, B + B', Z2), the loss's batch first; drawn if None
+        :param start: the belief before the first frames (``burn_in``), B + B' rows, the loss's batch first; None: the
+            first frames open their episodes. With it the first frame's KL is to the prior after the start
         :return: the total loss, its detached terms (as ``loss``) with the batch's extremes that name the cause of a
             spike (``prior_std_min``, ``posterior_std_min``: the smallest std of z1's prior and posterior;
             ``z_abs_max``, ``reconstruction_abs_max``: the largest |z| and |decoder output|), and the other sequences'
@@ -419,7 +493,7 @@ class LatentModel(nn.Module):
                 other_features = self.encode(other_observations)
             features = torch.cat([features, other_features])
             rollout_actions = torch.cat([actions, other_actions])
-        rollout = self.posterior(features, rollout_actions, noise)
+        rollout = self.posterior(features, rollout_actions, noise, start)
         z = torch.cat([rollout.z1, rollout.z2], dim=-1)
         z1_mean, z1_std, z2_prev = rollout.z1_mean, rollout.z1_std, rollout.z2[:, :-1]
         other_z = None
@@ -431,9 +505,17 @@ class LatentModel(nn.Module):
 
         # KL(q(z1_t | .) || p(z1_t | .)): N(0, I) at t = 0, teacher-forced p(z1_t | z2_{t-1}, a_{t-1}) after.
         prior_mean, prior_std = self.z1_prior(z2_prev, actions)
-        # N(0, 1) at t = 0, padded in front: one op each, where a cat with a filled slice takes three
-        prior_mean = F.pad(prior_mean, (0, 0, 1, 0))
-        prior_std = F.pad(prior_std, (0, 0, 1, 0), value=1.0)
+        if start is None:  # N(0, 1) at t = 0, padded in front: one op each, where a cat with a filled slice takes three
+            prior_mean = F.pad(prior_mean, (0, 0, 1, 0))
+            prior_std = F.pad(prior_std, (0, 0, 1, 0), value=1.0)
+        else:  # after a burn-in, p(z1_0 | z2_-1, a_-1) except where the first frame opens its episode
+            own = start.rows(slice(0, observations.shape[0]))
+            first_mean, first_std = self.z1_prior(own.z2, own.action)
+            opens = own.episode_start.view(-1, 1)
+            first_mean = torch.where(opens, torch.zeros_like(first_mean), first_mean)
+            first_std = torch.where(opens, torch.ones_like(first_std), first_std)
+            prior_mean = torch.cat([first_mean.unsqueeze(1), prior_mean], dim=1)
+            prior_std = torch.cat([first_std.unsqueeze(1), prior_std], dim=1)
         kl = self._kl(z1_mean, z1_std, prior_mean, prior_std)
 
         reconstruction = self.decode(z)
@@ -464,18 +546,24 @@ class LatentModel(nn.Module):
             }
         return total, {**{key: value.detach() for key, value in terms.items()}, **extremes}, other_z
 
-    def sample_latents(self, observations: Tensor, actions: Tensor) -> Tensor:
-        """Posterior samples ``z = [z1, z2]`` (B, T+1, z_dim) of observations (B, T+1, *obs_shape), actions (B, T, A)."""
+    def sample_latents(self, observations: Tensor, actions: Tensor, start: LatentStart | None = None) -> Tensor:
+        """
+        Posterior samples ``z = [z1, z2]`` (B, T+1, z_dim) of observations (B, T+1, *obs_shape), actions (B, T, A), after
+        ``start`` (a burn-in's, or None).
+        """
         self._check_sequence(observations, actions)
-        return self.latents_from_features(self.encode(observations), actions)
+        return self.latents_from_features(self.encode(observations), actions, start)
 
     def cost_probability(self, z: Tensor, actions: Tensor, next_z: Tensor) -> Tensor:
         """The cost decoder's p(c > 0) of transitions z (N, z_dim), actions (N, A) -> next_z (N, z_dim), shape (N,)."""
         return torch.sigmoid(self.cost_decoder(torch.cat([z, actions, next_z], dim=-1))).squeeze(-1)
 
-    def latents_from_features(self, features: Tensor, actions: Tensor) -> Tensor:
-        """Posterior samples ``z = [z1, z2]`` (B, T+1, z_dim) of encoder features (B, T+1, F) and actions (B, T, A)."""
-        rollout = self.posterior(features, actions)
+    def latents_from_features(self, features: Tensor, actions: Tensor, start: LatentStart | None = None) -> Tensor:
+        """
+        Posterior samples ``z = [z1, z2]`` (B, T+1, z_dim) of encoder features (B, T+1, F) and actions (B, T, A), after
+        ``start`` (a burn-in's, or None).
+        """
+        rollout = self.posterior(features, actions, start=start)
         return torch.cat([rollout.z1, rollout.z2], dim=-1)
 
     def filter_step(
