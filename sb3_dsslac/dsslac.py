@@ -55,6 +55,9 @@ class DSSLAC(CostBudget, FilteredRollouts):
         the acting filter does (R2D2's burn-in), so that the sequences' beliefs, the latent model's loss and the actor
         and critics learn from carry ``burn_in + sequence_length`` frames of history, as the acting filter's beliefs
         do, and not the sequence's alone. 0: none (the thesis's: each sequence opens its own belief)
+    :param stored_beliefs: with a burn-in, start it from the belief the acting filter reached at the frame before it,
+        stored with that frame in the replay buffer (R2D2's stored state), so that a short burn-in gives the sequences
+        beliefs of the whole episode so far; False: the burn-in opens its own belief at its first frame
     :param actor_critic_transitions: transitions of each sampled sequence, its last ones, that the actor and critics
         learn from: 1 (the thesis's, the last) to ``sequence_length`` (all: that many times the samples per update). The
         IQN cost critic then runs on ``batch_size * actor_critic_transitions * n_quantiles`` rows: with 4 transitions,
@@ -136,6 +139,7 @@ class DSSLAC(CostBudget, FilteredRollouts):
         latent_batch_size: int = 32,
         sequence_length: int = 10,
         burn_in: int = 0,
+        stored_beliefs: bool = False,
         actor_critic_transitions: int = 1,
         tau: float = 5e-3,
         gamma: float = 0.99,
@@ -206,6 +210,7 @@ class DSSLAC(CostBudget, FilteredRollouts):
         self.latent_batch_size = latent_batch_size
         self.sequence_length = sequence_length
         self.burn_in = burn_in
+        self.stored_beliefs = stored_beliefs
         self.actor_critic_transitions = actor_critic_transitions
         self.cost_gamma = cost_gamma
         # A copy: the caller's dict is not ours to fill, and may be shared by several models
@@ -274,6 +279,8 @@ class DSSLAC(CostBudget, FilteredRollouts):
         super()._setup_model()
         self.policy.latent.set_layout_for(self.device)
         self.replay_buffer.set_channels_last_frames(self.policy.latent.channels_last)
+        if self.stored_beliefs:
+            self.replay_buffer.store_beliefs(self.policy.latent.z2_dim)
         if self.device.type == "cpu":  # the updates' freed tensors stay mapped for the next update (allocator.py)
             keep_freed_memory()
         self.target_entropy = -float(self.policy.action_dim) if self.target_entropy == "auto" else float(self.target_entropy)
@@ -436,6 +443,8 @@ class DSSLAC(CostBudget, FilteredRollouts):
         """SB3's ``load_replay_buffer``, with the frames then stored in the layout of this model's convolutions."""
         super().load_replay_buffer(path, truncate_last_traj)
         self.replay_buffer.set_channels_last_frames(self.policy.latent.channels_last)
+        if self.stored_beliefs:
+            self.replay_buffer.store_beliefs(self.policy.latent.z2_dim)
 
     def _excluded_save_params(self) -> list[str]:
         # The training envs' rollout state, and the update engine that _setup_model rebuilds

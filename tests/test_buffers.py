@@ -67,6 +67,8 @@ class ScriptedEnvs:
                 self.step_in_episode[env] = 0
             else:
                 self.step_in_episode[env] += 1
+        if buffer.stores_beliefs:  # a "belief" of each frame acted from: the frame + 0.5
+            buffer.note_beliefs(np.stack(obs) + 0.5)
         buffer.add(np.stack(obs), np.stack(next_obs), np.stack(actions), np.array(rewards), np.array(dones), infos)
 
     def expected_windows(self, slots: int, length: int) -> set[tuple[int, int, int]]:
@@ -137,20 +139,25 @@ def test_windows_stay_inside_one_episode(plans, length, extra_slots, n_steps, se
     plans=st.lists(st.lists(episode_st, min_size=1, max_size=6), min_size=1, max_size=3),
     length=st.integers(1, 4),
     burn_in=st.integers(1, 5),
+    stored=st.booleans(),
     extra_slots=st.integers(0, 20),
     n_steps=st.integers(1, 80),
     seed=st.integers(0, 2**16),
 )
-def test_burn_in_reaches_back_into_the_episode(plans, length, burn_in, extra_slots, n_steps, seed):
+def test_burn_in_reaches_back_into_the_episode(plans, length, burn_in, stored, extra_slots, n_steps, seed):
     """
-    With a burn-in of K frames the windows are those without it whose episode's records among the K before them are
-    still stored; each comes with those K records, and the index of its episode's first frame where that is among them.
+    With a burn-in of K frames the windows are those without it whose episode's records among the K before them (and
+    the one before those, with stored beliefs) are still stored; each comes with those K records, the index of its
+    episode's first frame where that is among them (-1 before them), and with stored beliefs the belief and action of
+    the record before them where it is of the episode.
     """
     n_envs = len(plans)
     slots = burn_in + length + 1 + extra_slots
     buffer = SequenceReplayBuffer(
         slots * n_envs, VEC_SPACE, ACT_SPACE, device="cpu", n_envs=n_envs, sequence_length=length, burn_in=burn_in
     )
+    if stored:
+        buffer.store_beliefs(3)
     envs = ScriptedEnvs(plans)
     for _ in range(n_steps):
         envs.step(buffer)
@@ -159,7 +166,7 @@ def test_burn_in_reaches_back_into_the_episode(plans, length, burn_in, extra_slo
         kept = records[-slots:]
         for i in range(len(kept) - length):
             (ep0, s0), (ep1, s1) = kept[i], kept[i + length]
-            back = min(s0, burn_in)
+            back = min(s0, burn_in + stored)
             if ep0 == ep1 and s1 - s0 == length and i >= back:
                 reachable.add((env, ep0, s0))
     if not reachable:
@@ -173,11 +180,30 @@ def test_burn_in_reaches_back_into_the_episode(plans, length, burn_in, extra_slo
         env, episode, first = check_window(trained, b, envs, length)
         assert (env, episode, first) in reachable
         start_index = int(batch.episode_start_index[b])
-        assert start_index == max(burn_in - first, 0)
-        for index in range(start_index, burn_in):
+        assert start_index == max(burn_in - first, -1)
+        for index in range(max(start_index, 0), burn_in):
             step = first - burn_in + index
             np.testing.assert_array_equal(batch.observations[b, index].numpy(), frame(env, episode, step))
             np.testing.assert_array_equal(batch.actions[b, index].numpy(), frame(env, episode, step) / 1000.0)
+        if not stored:
+            assert batch.stored_belief is None and batch.stored_action is None
+        elif start_index == -1:
+            before = frame(env, episode, first - burn_in - 1)
+            np.testing.assert_array_equal(batch.stored_belief[b].numpy(), before + 0.5)
+            np.testing.assert_array_equal(batch.stored_action[b].numpy(), before / 1000.0)
+        else:
+            assert not batch.stored_belief[b].any() and not batch.stored_action[b].any()
+
+
+def test_stored_beliefs_need_a_burn_in_and_a_belief_for_every_add() -> None:
+    with pytest.raises(ValueError, match="burn_in >= 1"):
+        SequenceReplayBuffer(40, VEC_SPACE, ACT_SPACE, device="cpu", sequence_length=3).store_beliefs(3)
+    buffer = SequenceReplayBuffer(40, VEC_SPACE, ACT_SPACE, device="cpu", sequence_length=3, burn_in=2)
+    buffer.store_beliefs(3)
+    envs = ScriptedEnvs([[(9, False, False)]])
+    envs.step(buffer)
+    with pytest.raises(ValueError, match="note_beliefs"):
+        buffer.add(np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1), np.zeros(1), [{"cost": 0.0}])
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -1,5 +1,6 @@
 """``burn_in``: the frames before each window are filtered first, without gradient, as the acting filter runs."""
 
+import numpy as np
 import pytest
 import torch as th
 
@@ -38,6 +39,25 @@ def test_the_burn_in_is_the_acting_filter(latent: LatentModel) -> None:
     th.testing.assert_close(start.action, actions[:, -1])
     assert start.episode_start.tolist() == [False, False, True]
     assert not start.z2.requires_grad
+
+
+def test_a_burn_in_from_a_stored_belief_continues_it(latent: LatentModel) -> None:
+    """Rows whose episode began before the burn-in (index -1) continue the stored belief; the others restart."""
+    features, actions, _ = burn_in_inputs()
+    start_index = th.tensor([-1, 2, BURN_IN])
+    stored = (th.rand(BATCH, Z2) * 2 - 1, th.rand(BATCH, ACTIONS) * 2 - 1)
+    th.manual_seed(1)
+    start = latent.burn_in(features, actions, start_index, stored)
+    th.manual_seed(1)
+    z2, previous = stored
+    for index in range(BURN_IN):
+        _, z2 = latent.filter_step(features[:, index], z2, previous, start_index == index)
+        previous = actions[:, index]
+    th.testing.assert_close(start.z2, z2)
+    th.manual_seed(1)
+    from_first_frame = latent.burn_in(features, actions, start_index)
+    assert not th.allclose(from_first_frame.z2[0], start.z2[0])
+    th.testing.assert_close(from_first_frame.z2[1], start.z2[1])  # row 2's burn-in is another episode's: no matter
 
 
 def test_frames_before_an_episode_start_leave_the_start_as_it_is(latent: LatentModel) -> None:
@@ -111,6 +131,32 @@ def test_a_model_with_a_burn_in_learns_saves_and_loads(recurrence: str, tmp_path
     assert loaded.burn_in == 4 and loaded.updates.step.config.burn_in == 4
 
 
-def test_a_negative_burn_in_is_refused() -> None:
+def test_stored_beliefs_are_the_acting_filters(tmp_path) -> None:
+    """The buffer keeps the acting filter's z2 of each frame acted from; a model learns from them, saves and loads."""
+    model = small_model(HazardPointEnv(obs_type="pixels"), burn_in=2, stored_beliefs=True)
+    seen: list[th.Tensor] = []
+    step = model.policy.belief_step
+
+    def recording_step(*args, **kwargs):
+        z, z2 = step(*args, **kwargs)
+        seen.append(z2.clone())
+        return z, z2
+
+    model.policy.belief_step = recording_step  # type: ignore[method-assign]
+    model.learn(80)
+    del model.policy.belief_step
+    buffer = model.replay_buffer
+    assert buffer.stores_beliefs and model._n_updates > 0
+    written = buffer.episode_ids[:, 0] >= 0
+    last_frames = np.flatnonzero(written[:-1] & (buffer.episode_ids[1:, 0] != buffer.episode_ids[:-1, 0]))
+    acted_from = np.setdiff1d(np.flatnonzero(written), [*last_frames, np.flatnonzero(written)[-1]])
+    np.testing.assert_allclose(buffer.beliefs[acted_from, 0], th.cat(seen).numpy()[: len(acted_from)], rtol=1e-6)
+    model.save(tmp_path / "stored")
+    assert DSSLAC.load(tmp_path / "stored").stored_beliefs
+
+
+def test_a_negative_burn_in_and_stored_beliefs_without_one_are_refused() -> None:
     with pytest.raises(ValueError, match="burn_in"):
         small_model(HazardPointEnv(), burn_in=-1)
+    with pytest.raises(ValueError, match=r"stored_beliefs=True .* needs burn_in >= 1"):
+        small_model(HazardPointEnv(), stored_beliefs=True)

@@ -32,9 +32,12 @@ class SequenceBatch(NamedTuple):
     :param costs: (B, L) float32, from ``info["cost"]``
     :param terminated: (B, L) float32, 1.0 where the transition ended its episode by a true termination
     :param episode_start_index: with a burn-in of ``K`` frames (``L`` then counts them: the fields span ``K`` + the
-        trained transitions), the index in the window of its episode's first frame, clamped to [0, ``K``]: 0 where the
-        episode began before the window, ``K`` where the trained part starts the episode (B,) int64; the frames before
-        it are another episode's or unwritten, and the burn-in restarts there. None without a burn-in
+        trained transitions), the index in the window of its episode's first frame, clamped to [-1, ``K``]: -1 where
+        the episode began before the window, ``K`` where the trained part starts the episode (B,) int64; the frames
+        before it are another episode's or unwritten, and the burn-in restarts there. None without a burn-in
+    :param stored_belief: with stored beliefs (``store_beliefs``), the acting filter's z2 after the frame before the
+        window, where that frame is of the window's episode (``episode_start_index`` -1; zeros elsewhere) (B, Z2)
+    :param stored_action: the action that left that frame (B, A)
     """
 
     observations: th.Tensor
@@ -43,6 +46,8 @@ class SequenceBatch(NamedTuple):
     costs: th.Tensor
     terminated: th.Tensor
     episode_start_index: th.Tensor | None = None
+    stored_belief: th.Tensor | None = None
+    stored_action: th.Tensor | None = None
 
     def rows(self, part: slice) -> "SequenceBatch":
         """The windows ``part`` of the batch (a slice of its first dim), every field cut alike."""
@@ -95,9 +100,10 @@ class SequenceReplayBuffer(ReplayBuffer):
     terminated: np.ndarray
     episode_ids: np.ndarray
     episode_steps: np.ndarray
+    beliefs: np.ndarray
 
-    _STORAGE = ("observations", "actions", "rewards", "costs", "terminated", "episode_ids", "episode_steps")
-    _SAMPLED = ("observations", "actions", "rewards", "costs", "terminated")
+    _STORAGE = ("observations", "actions", "rewards", "costs", "terminated", "episode_ids", "episode_steps", "beliefs")
+    _SAMPLED = ("observations", "actions", "rewards", "costs", "terminated", "beliefs")
 
     def __init__(
         self,
@@ -149,6 +155,9 @@ class SequenceReplayBuffer(ReplayBuffer):
         # Episode id (unique per episode, increasing) and step within the episode of each record; -1 / 0 when unwritten
         self.episode_ids = np.full(shape, -1, dtype=np.int64)
         self.episode_steps = np.zeros(shape, dtype=np.int64)
+        # The acting filter's z2 after each record's frame, with ``store_beliefs`` (no columns without)
+        self.beliefs = np.zeros((*shape, 0), dtype=np.float32)
+        self._pending_beliefs: np.ndarray | None = None
         self._device_copy: dict[str, th.Tensor] | None = None  # device copies of the _SAMPLED arrays (GPU only)
         self._init_counters()
 
@@ -186,6 +195,27 @@ class SequenceReplayBuffer(ReplayBuffer):
         self.observations[:n_rows] = frames
         self.channels_last_frames = channels_last
         self._device_copy = None
+
+    @property
+    def stores_beliefs(self) -> bool:
+        """Whether records keep the acting filter's belief (``store_beliefs``)."""
+        return self.beliefs.shape[-1] > 0
+
+    def store_beliefs(self, belief_dim: int) -> None:
+        """
+        Keep the acting filter's z2 (``belief_dim`` floats) with every record from now on, noted by ``note_beliefs``
+        before each ``add``: a window with a burn-in then also brings the belief after the frame before it, where the
+        learner's burn-in starts (R2D2's stored state). Only with a burn-in; the records stored so far get zeros.
+        """
+        if self.burn_in == 0:
+            raise ValueError("stored beliefs start a burn-in: they need burn_in >= 1")
+        if belief_dim != self.beliefs.shape[-1]:
+            self.beliefs = np.zeros((self.buffer_size, self.n_envs, belief_dim), dtype=np.float32)
+            self._device_copy = None
+
+    def note_beliefs(self, beliefs: np.ndarray) -> None:
+        """The beliefs (n_envs, belief_dim) of the frames the next ``add``'s actions were taken from."""
+        self._pending_beliefs = np.asarray(beliefs, dtype=np.float32).reshape(self.n_envs, -1)
 
     def _windows_valid(self, starts: np.ndarray, envs: np.ndarray, length: int) -> np.ndarray:
         """Whether records at slots ``starts .. starts + length`` (mod ring) of ``envs`` are steps of one episode."""
@@ -256,6 +286,11 @@ class SequenceReplayBuffer(ReplayBuffer):
         self.rewards[current, all_envs] = np.asarray(reward).reshape(self.n_envs)
         self.costs[current, all_envs] = costs
         self.terminated[current, all_envs] = terminated
+        if self.stores_beliefs:
+            if self._pending_beliefs is None:
+                raise ValueError("this buffer stores the acting filter's beliefs: call note_beliefs before each add")
+            self.beliefs[current, all_envs] = self._pending_beliefs
+            self._pending_beliefs = None
         self._write_records(all_envs, next_obs, self.episode_ids[current, all_envs], self.episode_steps[current, all_envs] + 1)
         self._episode_start = done.copy()
 
@@ -294,8 +329,11 @@ class SequenceReplayBuffer(ReplayBuffer):
         return flat // self.n_envs, flat % self.n_envs
 
     def _burn_in_frames(self, starts: np.ndarray, envs: np.ndarray) -> np.ndarray:
-        """How many of the ``burn_in`` records before each window are of its episode: min(step of its first frame, K)."""
-        return np.minimum(self.episode_steps[starts, envs], self.burn_in)
+        """
+        How many records before each window are of its episode, up to the ``burn_in`` ones and, with stored beliefs, the
+        one before them, whose belief the burn-in starts from: min(step of its first frame, K (+ 1)).
+        """
+        return np.minimum(self.episode_steps[starts, envs], self.burn_in + int(self.stores_beliefs))
 
     def _burn_in_stored(self, starts: np.ndarray, envs: np.ndarray) -> np.ndarray:
         """
@@ -378,8 +416,8 @@ class SequenceReplayBuffer(ReplayBuffer):
         starts, envs = self._sample_starts(n_batches * batch_size)
         self._sync_device_copy()  # upload the new records once per burst, not inside the updates
         columns = [starts, envs]
-        if self.burn_in > 0:
-            columns.append(self.burn_in - self._burn_in_frames(starts, envs))
+        if self.burn_in > 0:  # K - step, in [-1, K]: -1 where the frame before the burn-in is of the episode too
+            columns.append(self.burn_in - np.minimum(self.episode_steps[starts, envs], self.burn_in + 1))
         indices = np.stack(columns, axis=-1).reshape(n_batches, batch_size, len(columns))
         return th.as_tensor(indices).to(self.device)
 
@@ -405,7 +443,7 @@ class SequenceReplayBuffer(ReplayBuffer):
         if self.channels_last_frames:  # (B, L+1, H, W, C) -> (B, L+1, C, H, W), channels-last
             observations = observations.permute(0, 1, 4, 2, 3)
         transition_rows = rows[:, :-1].reshape(-1)  # flattened once for the four transition fields
-        return SequenceBatch(
+        batch = SequenceBatch(
             observations=observations,
             actions=take("actions", transition_rows, length),
             rewards=take("rewards", transition_rows, length),
@@ -413,6 +451,13 @@ class SequenceReplayBuffer(ReplayBuffer):
             terminated=take("terminated", transition_rows, length),
             episode_start_index=indices[:, 2] if self.burn_in > 0 else None,
         )
+        if self.stores_beliefs:  # the record before the burn-in: its belief and action, where it is of the episode
+            before = (rows[:, 0] - self.n_envs) % (self.buffer_size * self.n_envs)
+            of_episode = (indices[:, 2] == -1).unsqueeze(-1)
+            belief = take("beliefs", before, 1).squeeze(1)
+            action = take("actions", before, 1).squeeze(1)
+            batch = batch._replace(stored_belief=belief * of_episode, stored_action=action * of_episode)
+        return batch
 
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> SequenceBatch:  # type: ignore[override]
         """
@@ -443,6 +488,9 @@ class SequenceReplayBuffer(ReplayBuffer):
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.channels_last_frames = False  # buffers pickled before frames could be stored channels-last
         self.burn_in = 0  # and before windows could bring a burn-in
+        self._pending_beliefs = None
+        if "beliefs" not in state:  # or records their beliefs
+            state["beliefs"] = np.zeros((*state["rewards"].shape, 0), dtype=np.float32)
         self.__dict__.update(state)
         for name in self._STORAGE:
             stored = state[name]

@@ -16,6 +16,7 @@ from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn, 
 from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_dsslac.common.buffers import SequenceReplayBuffer
 from sb3_dsslac.common.env_info import check_observations_finite, cost_from_info
 from sb3_dsslac.common.policies import LatentPolicy
 from sb3_dsslac.common.timing import TimeAccount
@@ -129,6 +130,9 @@ class FilteredRollouts(OffPolicyAlgorithm):
         for idx in np.flatnonzero(dones):
             self.ep_cost_buffer.append(float(self._episode_costs[idx]))
             self._episode_costs[idx] = 0.0
+        if isinstance(replay_buffer, SequenceReplayBuffer) and replay_buffer.stores_beliefs:
+            assert self._last_filter_state is not None
+            replay_buffer.note_beliefs(self._last_filter_state[0].cpu().numpy())  # z2 after the frame acted from
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
         self._last_episode_starts = np.array(dones, dtype=bool)
 

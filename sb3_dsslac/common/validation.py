@@ -245,8 +245,8 @@ def check_arguments(function: Callable[..., Any], arguments: Mapping[str, Any], 
 def check_related_arguments(arguments: Mapping[str, Any]) -> None:
     """
     The ranges of ``DSSLAC``'s keywords that depend on another: ``actor_critic_transitions`` (at most ``sequence_length``,
-    one fewer with the policy's ``previous_action_input``: a window's first frame has no previous action in it) and
-    ``cost_target``.
+    one fewer with the policy's ``previous_action_input``: a window's first frame has no previous action in it),
+    ``stored_beliefs`` (a burn-in to start) and ``cost_target``.
     """
     transitions, length = arguments["actor_critic_transitions"], arguments["sequence_length"]
     most, range_text = length, f"[1, sequence_length={length}]"
@@ -256,6 +256,11 @@ def check_related_arguments(arguments: Mapping[str, Any]) -> None:
         range_text += "action in it)"
     if not 1 <= transitions <= most:
         raise ValueError(f"actor_critic_transitions must be in {range_text}, got {transitions}")
+    if arguments.get("stored_beliefs") and arguments.get("burn_in", 0) < 1:
+        raise ValueError(
+            f"stored_beliefs=True starts each window's burn-in from a stored belief: it needs burn_in >= 1, got "
+            f"burn_in={arguments.get('burn_in', 0)}"
+        )
     target, limit = arguments["cost_target"], arguments["cost_limit"]
     if target is not None and not 0.0 <= target <= limit:
         raise ValueError(f"cost_target must be in [0, cost_limit={limit:g}] or None, got {target}")

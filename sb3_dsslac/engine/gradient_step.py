@@ -204,15 +204,19 @@ class GradientStep:
     def burn_in(self, batch: SequenceBatch) -> tuple[SequenceBatch, LatentStart | None]:
         """
         The windows of ``batch`` after their burn-in (``config.burn_in`` frames), and the belief the latent model's
-        filter reaches over the burn-in, without gradient; the batch itself and None without a burn-in.
+        filter reaches over the burn-in, without gradient, from the acting filter's stored belief where the batch
+        brings one; the batch itself and None without a burn-in.
         """
         frames = self.config.burn_in
         if frames == 0:
             return batch, None
         assert batch.episode_start_index is not None, "a burn-in needs windows sampled with one (SequenceReplayBuffer)"
+        stored = None
+        if batch.stored_belief is not None and batch.stored_action is not None:
+            stored = (batch.stored_belief, batch.stored_action)
         with th.no_grad(), bf16_autocast(self.config.bf16, self.device):
             features = self.policy.latent.encode(self.policy.preprocess(batch.observations[:, :frames]))
-            start = self.policy.latent.burn_in(features, batch.actions[:, :frames], batch.episode_start_index)
+            start = self.policy.latent.burn_in(features, batch.actions[:, :frames], batch.episode_start_index, stored)
         return batch.without_burn_in(frames), start
 
     def latent_update(

@@ -373,7 +373,13 @@ class LatentModel(nn.Module):
         z2 = torch.addcmul(torch.where(opens, init_mean, step_mean), torch.where(opens, init_std, step_std), z2_eps)
         return z1_mean, z1_std, z1, z2
 
-    def burn_in(self, features: Tensor, actions: Tensor, episode_start_index: Tensor) -> LatentStart:
+    def burn_in(
+        self,
+        features: Tensor,
+        actions: Tensor,
+        episode_start_index: Tensor,
+        stored: tuple[Tensor, Tensor] | None = None,
+    ) -> LatentStart:
         """
         Filter the burn-in frames before a batch of windows, as the acting filter does (posterior samples, restarting
         at each row's episode start), without gradient: R2D2's burn-in, so that the windows' beliefs carry as much
@@ -381,15 +387,23 @@ class LatentModel(nn.Module):
 
         :param features: (B, K, F) encoder features of the K burn-in frames
         :param actions: (B, K, A) the actions leaving them (the last one leads to the window's first frame)
-        :param episode_start_index: (B,) int64 index of each row's episode's first frame, in [0, K] (K: the window's
-            first frame; the frames before it are another episode's: ``SequenceBatch.episode_start_index``)
+        :param episode_start_index: (B,) int64 index of each row's episode's first frame, in [-1, K] (K: the window's
+            first frame; -1: before the burn-in; the frames before it are another episode's:
+            ``SequenceBatch.episode_start_index``)
+        :param stored: the belief z2 (B, Z2) after the frame before the burn-in and the action (B, A) that left it,
+            which the burn-in continues from where that frame is of the episode (index -1): R2D2's stored state. None:
+            every row's burn-in opens at its first frame
         :return: the start of the windows' rollout
         """
         with torch.no_grad():
-            z2 = features.new_zeros(features.shape[0], self.z2_dim)
-            action_prev = torch.zeros_like(actions[:, 0])
+            if stored is None:
+                z2, action_prev = features.new_zeros(features.shape[0], self.z2_dim), torch.zeros_like(actions[:, 0])
+            else:
+                z2, action_prev = stored
             for index in range(features.shape[1]):
-                restart = (episode_start_index == index) | (index == 0)
+                restart = episode_start_index == index
+                if index == 0 and stored is None:
+                    restart = torch.ones_like(restart)
                 _, z2 = self.filter_step(features[:, index], z2, action_prev, restart)
                 action_prev = actions[:, index]
             return LatentStart(z2, action_prev, episode_start_index == features.shape[1])
