@@ -6,8 +6,8 @@ Named hyperparameter sets of ``DSSLAC`` (``PRESETS``) and the env keywords some 
 - ``cpu``: small networks, a pixel run end to end in a few minutes on a laptop CPU; learns little;
 - ``cpu_learning``: vector observations; learns PointGoal1 in about 30 minutes on a 2-core CPU;
 - ``cpu_pixels`` (64x64 frames) and ``cpu_pixels32`` / ``cpu_pixels32_bounded`` / ``cpu_pixels32_pid`` /
-  ``cpu_pixels32_prev_action`` (32x32 frames at action repeat 4): the thesis's pixel pipeline on a CPU budget. What
-  each reaches, per task, is in docs/pixel_learning.md.
+  ``cpu_pixels32_prev_action`` / ``cpu_pixels32_gru`` / ``cpu_pixels32_gru_stored`` (32x32 frames at action repeat 4):
+  the thesis's pixel pipeline on a CPU budget. What each reaches, per task, is in docs/pixel_learning.md.
 """
 
 from typing import Any
@@ -164,6 +164,17 @@ PRESETS: dict[str, dict[str, Any]] = {
         **CPU_PIXELS32_PID,
         "policy_kwargs": {**CPU_PIXELS32_BOUNDED["policy_kwargs"], "latent_recurrence": "gru"},
     },
+    # cpu_pixels32_gru whose windows continue the acting filter's belief: the replay buffer keeps the filter's z2 of every
+    # frame, and each window's latent rollout starts from the one stored 5 frames before it, refreshed over a 4-frame
+    # burn-in without gradient (R2D2's stored state). The latent model, actor and critics then learn on beliefs with the
+    # whole episode's history, as the agent acts on, where cpu_pixels32_gru's see the window's 5 frames. The update costs
+    # 1.12x cpu_pixels32_pid's (0.89x its updates/s, compare_trees.py, side by side)
+    "cpu_pixels32_gru_stored": {
+        **CPU_PIXELS32_PID,
+        "burn_in": 4,
+        "stored_beliefs": True,
+        "policy_kwargs": {**CPU_PIXELS32_BOUNDED["policy_kwargs"], "latent_recurrence": "gru"},
+    },
 }
 
 
@@ -171,7 +182,14 @@ PRESETS: dict[str, dict[str, Any]] = {
 # passes its own (``train --env-kwargs``)
 PRESET_ENV_KWARGS: dict[str, dict[str, Any]] = {
     name: {"width": 32, "height": 32, "action_repeat": 4}
-    for name in ("cpu_pixels32", "cpu_pixels32_bounded", "cpu_pixels32_pid", "cpu_pixels32_prev_action", "cpu_pixels32_gru")
+    for name in (
+        "cpu_pixels32",
+        "cpu_pixels32_bounded",
+        "cpu_pixels32_pid",
+        "cpu_pixels32_prev_action",
+        "cpu_pixels32_gru",
+        "cpu_pixels32_gru_stored",
+    )
 }
 
 
