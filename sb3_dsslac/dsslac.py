@@ -57,7 +57,9 @@ class DSSLAC(CostBudget, FilteredRollouts):
         do, and not the sequence's alone. 0: none (the thesis's: each sequence opens its own belief)
     :param stored_beliefs: with a burn-in, start it from the belief the acting filter reached at the frame before it,
         stored with that frame in the replay buffer (R2D2's stored state), so that a short burn-in gives the sequences
-        beliefs of the whole episode so far; False: the burn-in opens its own belief at its first frame
+        beliefs of the whole episode so far; False: the burn-in opens its own belief at its first frame. The burn-in's
+        encoder passes are what it costs: at ``cpu_pixels32_gru``'s sizes 4 frames from stored beliefs ran at 0.90x
+        ``cpu_pixels32_pid``'s updates/s, 16 frames from the window's own at 0.37x (benchmarks/results/burn_in_speed.md)
     :param actor_critic_transitions: transitions of each sampled sequence, its last ones, that the actor and critics
         learn from: 1 (the thesis's, the last) to ``sequence_length`` (all: that many times the samples per update). The
         IQN cost critic then runs on ``batch_size * actor_critic_transitions * n_quantiles`` rows: with 4 transitions,

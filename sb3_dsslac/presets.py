@@ -168,7 +168,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # frame, and each window's latent rollout starts from the one stored 5 frames before it, refreshed over a 4-frame
     # burn-in without gradient (R2D2's stored state). The latent model, actor and critics then learn on beliefs with the
     # whole episode's history, as the agent acts on, where cpu_pixels32_gru's see the window's 5 frames. The update costs
-    # 1.12x cpu_pixels32_pid's (0.89x its updates/s, compare_trees.py, side by side)
+    # 1.11x cpu_pixels32_pid's (0.90x its updates/s side by side: benchmarks/results/burn_in_speed.md)
     "cpu_pixels32_gru_stored": {
         **CPU_PIXELS32_PID,
         "burn_in": 4,

@@ -211,14 +211,24 @@ def test_stored_beliefs_need_a_burn_in_and_a_belief_for_every_add() -> None:
     plans=st.lists(st.lists(episode_st, min_size=1, max_size=6), min_size=1, max_size=3),
     extra_slots=st.integers(0, 12),
     bursts=st.lists(st.integers(0, 30), min_size=1, max_size=6),
+    stored=st.booleans(),
 )
-def test_device_copy_tracks_the_host_arrays(plans, extra_slots, bursts):
+def test_device_copy_tracks_the_host_arrays(plans, extra_slots, bursts, stored):
     # The GPU path: a device copy brought up to date before each sampling must equal the host arrays, through ring
-    # wrap-arounds and the transition fields that the next `add` writes into an already uploaded record.
+    # wrap-arounds and the transition fields that the next `add` writes into an already uploaded record (the stored
+    # beliefs among them).
     n_envs, length = len(plans), 2
     buffer = SequenceReplayBuffer(
-        (length + 1 + extra_slots) * n_envs, VEC_SPACE, ACT_SPACE, device="cpu", n_envs=n_envs, sequence_length=length
+        (length + 2 + extra_slots) * n_envs,
+        VEC_SPACE,
+        ACT_SPACE,
+        device="cpu",
+        n_envs=n_envs,
+        sequence_length=length,
+        burn_in=1,
     )
+    if stored:
+        buffer.store_beliefs(3)
     buffer._device_copy = {name: th.from_numpy(getattr(buffer, name).copy()) for name in buffer._SAMPLED}
     envs = ScriptedEnvs(plans)
     for n_steps in bursts:
@@ -356,8 +366,10 @@ def test_sample_before_enough_data_raises():
         buffer.sample(2)
 
 
-def filled_buffer(n_steps: int, slots: int = 40) -> tuple[SequenceReplayBuffer, ScriptedEnvs]:
-    buffer = SequenceReplayBuffer(2 * slots, VEC_SPACE, ACT_SPACE, device="cpu", n_envs=2, sequence_length=3)
+def filled_buffer(n_steps: int, slots: int = 40, burn_in: int = 0) -> tuple[SequenceReplayBuffer, ScriptedEnvs]:
+    buffer = SequenceReplayBuffer(2 * slots, VEC_SPACE, ACT_SPACE, device="cpu", n_envs=2, sequence_length=3, burn_in=burn_in)
+    if burn_in > 0:
+        buffer.store_beliefs(3)
     envs = ScriptedEnvs([[(7, True, False), (4, False, False)], [(9, False, False)]])
     for _ in range(n_steps):
         envs.step(buffer)
@@ -374,8 +386,9 @@ def assert_same_samples(a: SequenceReplayBuffer, b: SequenceReplayBuffer, seed: 
 
 
 @pytest.mark.parametrize("n_steps", [15, 100])  # before and after the ring wraps
-def test_pickle_round_trip(tmp_path, n_steps):
-    buffer, envs = filled_buffer(n_steps)
+@pytest.mark.parametrize("burn_in", [0, 2])
+def test_pickle_round_trip(tmp_path, n_steps, burn_in):
+    buffer, envs = filled_buffer(n_steps, burn_in=burn_in)
     restored = pickle.loads(pickle.dumps(buffer))
     assert_same_samples(buffer, restored)
     save_to_pkl(tmp_path / "buffer.pkl", buffer)

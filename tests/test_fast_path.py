@@ -140,15 +140,16 @@ def test_bf16_latent_loss_is_within_one_percent_of_fp32() -> None:
     assert abs(parts["image_loss"].item() - reference_parts["image_loss"].item()) <= 1e-2 * reference_parts["image_loss"].abs()
 
 
-def warmed_up_pair(policy_kwargs: dict | None = None, **fast: object) -> tuple[DSSLAC, DSSLAC]:
+def warmed_up_pair(policy_kwargs: dict | None = None, both: dict | None = None, **fast: object) -> tuple[DSSLAC, DSSLAC]:
     """
     Two models with the same weights, optimizer states and replay buffer, both of ``policy_kwargs`` (added to the small
-    policy's), the second with ``fast`` keywords.
+    policy's) and the keywords ``both``, the second with ``fast`` keywords.
     """
     policy_kwargs = {**SMALL_POLICY, **(policy_kwargs or {})}
-    plain = small_model(HazardPointEnv(obs_type="pixels"), learning_starts=10_000, policy_kwargs=policy_kwargs)
+    both = both or {}
+    plain = small_model(HazardPointEnv(obs_type="pixels"), learning_starts=10_000, policy_kwargs=policy_kwargs, **both)
     plain.learn(60)  # warm-up data only
-    other = small_model(HazardPointEnv(obs_type="pixels"), policy_kwargs=policy_kwargs, **fast)
+    other = small_model(HazardPointEnv(obs_type="pixels"), policy_kwargs=policy_kwargs, **both, **fast)
     other.policy.load_state_dict(plain.policy.state_dict())
     other.replay_buffer = plain.replay_buffer
     for model in (plain, other):
@@ -178,12 +179,20 @@ LATENT_STATISTICS = {
 # Inductor draws its own random numbers unless told to use eager's generator (its config's own patch: monkeypatch's undo
 # deletes the setting, and later compilations in the process then fail)
 @th._inductor.config.patch(fallback_random=True)
-def test_compiled_update_matches_eager(monkeypatch) -> None:
+@pytest.mark.parametrize(
+    "recurrent_memory",
+    [{}, {"policy_kwargs": {"latent_recurrence": "gru"}, "burn_in": 2, "stored_beliefs": True}],
+    ids=["thesis_update", "gru_stored_beliefs"],
+)
+def test_compiled_update_matches_eager(monkeypatch, recurrent_memory: dict) -> None:
     # Minutes on 2 cores with a cold Inductor cache (17 s with a warm one): torch.compile builds the whole gradient step
     # and the burst's last actor-critic step with Inductor's C++ kernels, whatever the networks' sizes. The cpu_pixels
-    # presets' narrow first layer, channels-last (as on an x86 CPU), whatever this CPU
+    # presets' narrow first layer, channels-last (as on an x86 CPU), whatever this CPU; and the same with the GRU latent
+    # and a burn-in from stored beliefs (cpu_pixels32_gru_stored's memory)
     monkeypatch.setattr(latent_module, "channels_last_is_faster", lambda widths, device: True)
-    eager, compiled = warmed_up_pair({"image_channels": (8, 8, 16, 16)}, compile_updates=True)
+    keywords = dict(recurrent_memory)
+    policy_kwargs = {"image_channels": (8, 8, 16, 16), **keywords.pop("policy_kwargs", {})}
+    eager, compiled = warmed_up_pair(policy_kwargs, both=keywords, compile_updates=True)
     assert compiled.policy.latent.channels_last
     indices = eager.replay_buffer.sample_indices(3, eager.latent_batch_size + eager.batch_size)
     with warnings.catch_warnings():

@@ -314,7 +314,7 @@ def test_kl_is_against_n01_at_t0_and_the_teacher_forced_prior_after(monkeypatch)
     batch, steps = 2, 4
     z1_mean, z1_std = th.randn(batch, steps + 1, 3), th.rand(batch, steps + 1, 3) + 0.2
     rollout = LatentRollout(z1_mean, z1_std, th.randn(batch, steps + 1, 3), th.randn(batch, steps + 1, 5))
-    monkeypatch.setattr(model, "posterior", lambda features, actions, noise=None: rollout)
+    monkeypatch.setattr(model, "posterior", lambda features, actions, noise=None, start=None: rollout)
     actions = th.rand(batch, steps, 2) * 2 - 1
     zeros = th.zeros(batch, steps)
     _, parts = model.loss(th.randn(batch, steps + 1, 4), actions, zeros, zeros, zeros)
