@@ -168,7 +168,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     # frame, and each window's latent rollout starts from the one stored 5 frames before it, refreshed over a 4-frame
     # burn-in without gradient (R2D2's stored state). The latent model, actor and critics then learn on beliefs with the
     # whole episode's history, as the agent acts on, where cpu_pixels32_gru's see the window's 5 frames. The update costs
-    # 1.11x cpu_pixels32_pid's (0.90x its updates/s side by side: benchmarks/results/burn_in_speed.md)
+    # 1.11x cpu_pixels32_pid's (0.90x its updates/s side by side: benchmarks/results/burn_in_speed.md). PointGoal1 by
+    # 300k, seeds 50 and 51: 4.80 at cost 17.9 (9.19 at 22.3 and 0.41 at 13.5); goal-memory probe 0.11-0.26 out of view
+    # by then (0.34 at 120k): the learner sees the acting filter's beliefs, but the belief keeps no more than the GRU's
     "cpu_pixels32_gru_stored": {
         **CPU_PIXELS32_PID,
         "burn_in": 4,
