@@ -115,14 +115,25 @@ def test_the_first_kl_term_is_to_the_prior_after_the_burn_in(latent: LatentModel
     th.testing.assert_close(terms["kl"], kl.mean())
 
 
-@pytest.mark.parametrize("recurrence", ["gaussian", "gru"])
-def test_a_model_with_a_burn_in_learns_saves_and_loads(recurrence: str, tmp_path) -> None:
+@pytest.mark.parametrize(("recurrence", "share_latent_batch"), [("gaussian", False), ("gru", False), ("gaussian", True)])
+def test_a_model_with_a_burn_in_learns_saves_and_loads(recurrence: str, share_latent_batch: bool, tmp_path) -> None:
+    """Every update's windows are burned in: the latent model's and the actor-critic's, shared or not."""
     model = small_model(
-        HazardPointEnv(obs_type="pixels"), burn_in=4, policy_kwargs={**SMALL_POLICY, "latent_recurrence": recurrence}
+        HazardPointEnv(obs_type="pixels"),
+        burn_in=4,
+        share_latent_batch=share_latent_batch,
+        policy_kwargs={**SMALL_POLICY, "latent_recurrence": recurrence},
     )
     assert model.replay_buffer.burn_in == 4 and model.updates.step.config.burn_in == 4
+    burned_in_rows: list[int] = []
+    burn_in = model.policy.latent.burn_in
+    model.policy.latent.burn_in = lambda features, *args: burned_in_rows.append(len(features)) or burn_in(features, *args)
     model.learn(80)
     assert model._n_updates > 0
+    # 3 pre-training updates of 4 windows, then per burst of 2 updates: the latent batches (4) and the actor-critic
+    # batches (8) of both, or the 8 shared windows of each
+    per_burst = [8, 8] if share_latent_batch else [4, 4, 8, 8]
+    assert sorted(burned_in_rows) == sorted([4] * 3 + per_burst * (model._n_updates // 2))
     assert all(th.isfinite(param).all() for param in model.policy.parameters())
     batch = model.replay_buffer.sample(2)
     assert batch.observations.shape[1] == 4 + 3 + 1 and batch.episode_start_index is not None
