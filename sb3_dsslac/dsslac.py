@@ -280,9 +280,7 @@ class DSSLAC(CostBudget, FilteredRollouts):
     def _setup_model(self) -> None:
         super()._setup_model()
         self.policy.latent.set_layout_for(self.device)
-        self.replay_buffer.set_channels_last_frames(self.policy.latent.channels_last)
-        if self.stored_beliefs:
-            self.replay_buffer.store_beliefs(self.policy.latent.z2_dim)
+        self._fit_replay_buffer()
         if self.device.type == "cpu":  # the updates' freed tensors stay mapped for the next update (allocator.py)
             keep_freed_memory()
         self.target_entropy = -float(self.policy.action_dim) if self.target_entropy == "auto" else float(self.target_entropy)
@@ -442,8 +440,12 @@ class DSSLAC(CostBudget, FilteredRollouts):
         return model
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
-        """SB3's ``load_replay_buffer``, with the frames then stored in the layout of this model's convolutions."""
+        """SB3's ``load_replay_buffer``, the buffer then fitted to this model (``_fit_replay_buffer``)."""
         super().load_replay_buffer(path, truncate_last_traj)
+        self._fit_replay_buffer()
+
+    def _fit_replay_buffer(self) -> None:
+        """Store the buffer's frames in the layout of this model's convolutions, and its beliefs with ``stored_beliefs``."""
         self.replay_buffer.set_channels_last_frames(self.policy.latent.channels_last)
         if self.stored_beliefs:
             self.replay_buffer.store_beliefs(self.policy.latent.z2_dim)

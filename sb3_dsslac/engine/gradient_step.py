@@ -67,7 +67,7 @@ class UpdateConfig:
     actor_max_grad_norm: float
     critic_lagrange_budget: float | None
     bf16: bool
-    burn_in: int = 0
+    burn_in: int
 
 
 class GradientStep:

@@ -364,14 +364,24 @@ class LatentModel(nn.Module):
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The first frame's z1 mean, std and sample and z2 sample after ``start`` (the filter's step, as ``filter_step``)."""
         opens = start.episode_start.view(-1, 1)
-        init_mean, init_std = self.z1_posterior_init(feature)
-        step_mean, step_std = self.z1_posterior(feature, start.z2, start.action)
-        z1_mean, z1_std = torch.where(opens, init_mean, step_mean), torch.where(opens, init_std, step_std)
+        z1_mean, z1_std = self._z1_opening_or_next(feature, start.z2, start.action, opens)
         z1 = torch.addcmul(z1_mean, z1_std, z1_eps)
-        init_mean, init_std = self.z2_init(z1)
-        step_mean, step_std = self.z2_transition(z1, start.z2, start.action)
-        z2 = torch.addcmul(torch.where(opens, init_mean, step_mean), torch.where(opens, init_std, step_std), z2_eps)
+        z2 = torch.addcmul(*self._z2_opening_or_next(z1, start.z2, start.action, opens), z2_eps)
         return z1_mean, z1_std, z1, z2
+
+    def _z1_opening_or_next(
+        self, feature: Tensor, z2_prev: Tensor, action_prev: Tensor, opens: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """z1's posterior (mean, std), each (N, Z1): ``q(z1_0 | f)`` where ``opens`` (N, 1), else ``q(z1 | f, z2, a)``."""
+        init_mean, init_std = self.z1_posterior_init(feature)
+        step_mean, step_std = self.z1_posterior(feature, z2_prev, action_prev)
+        return torch.where(opens, init_mean, step_mean), torch.where(opens, init_std, step_std)
+
+    def _z2_opening_or_next(self, z1: Tensor, z2_prev: Tensor, action_prev: Tensor, opens: Tensor) -> tuple[Tensor, Tensor]:
+        """z2's (mean, std), each (N, Z2): ``z2_init(z1)`` where ``opens`` (N, 1) is True, else ``z2_transition``'s."""
+        init_mean, init_std = self.z2_init(z1)
+        step_mean, step_std = self.z2_transition(z1, z2_prev, action_prev)
+        return torch.where(opens, init_mean, step_mean), torch.where(opens, init_std, step_std)
 
     def burn_in(
         self,
@@ -594,14 +604,10 @@ class LatentModel(nn.Module):
         :return: z1 (N, z1_dim) and z2 (N, z2_dim)
         """
         start = episode_start.to(torch.bool).view(-1, 1)
-        init_mean, init_std = self.z1_posterior_init(feature)
-        step_mean, step_std = self.z1_posterior(feature, z2_prev, action_prev)
-        z1 = torch.where(start, init_mean, step_mean)
+        z1, z1_std = self._z1_opening_or_next(feature, z2_prev, action_prev, start)
         if not deterministic:
-            z1 = z1 + torch.where(start, init_std, step_std) * torch.randn_like(z1)
-        init_mean, init_std = self.z2_init(z1)
-        step_mean, step_std = self.z2_transition(z1, z2_prev, action_prev)
-        z2 = torch.where(start, init_mean, step_mean)
+            z1 = z1 + z1_std * torch.randn_like(z1)
+        z2, z2_std = self._z2_opening_or_next(z1, z2_prev, action_prev, start)
         if not deterministic:
-            z2 = z2 + torch.where(start, init_std, step_std) * torch.randn_like(z2)
+            z2 = z2 + z2_std * torch.randn_like(z2)
         return z1, z2
