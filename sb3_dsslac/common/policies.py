@@ -67,6 +67,8 @@ class LatentPolicy(BasePolicy):
         and a bound the latents cannot run away (see ``GaussianBounds``)
     :param latent_kl_balance: None (the thesis's) or the share of the KL's gradient that trains the prior
         (``LatentModel``'s ``kl_balance``; 0.8 in LAMBDA)
+    :param latent_overshooting: the longest open-loop roll of z1's prior in the latent loss (``LatentModel``'s
+        ``overshooting_depth``): 1, the thesis's, the one-step KL alone; up to ``sequence_length``
     :param latent_recurrence: how z2 follows from the previous step: "gaussian" (the thesis's: a Gaussian MLP of
         ``[z1_{t+1}, z2_t, a_t]``, noise at every step) or "gru" (a deterministic GRU state, as in an RSSM:
         ``RecurrentLatentModel``), which can hold what left the view
@@ -116,6 +118,7 @@ class LatentPolicy(BasePolicy):
         latent_max_std: float | None = None,
         latent_mean_bound: float | None = None,
         latent_kl_balance: float | None = None,
+        latent_overshooting: int = 1,
         latent_recurrence: str = "gaussian",
         latent_learning_rate: float = 1e-4,
         previous_action_input: bool = False,
@@ -154,6 +157,7 @@ class LatentPolicy(BasePolicy):
         self.latent_max_std = latent_max_std
         self.latent_mean_bound = latent_mean_bound
         self.latent_kl_balance = latent_kl_balance
+        self.latent_overshooting = latent_overshooting
         if latent_recurrence not in LATENT_MODELS:
             raise ValueError(f"latent_recurrence must be one of {sorted(LATENT_MODELS)}, got {latent_recurrence!r}")
         self.latent_recurrence = latent_recurrence
@@ -188,6 +192,7 @@ class LatentPolicy(BasePolicy):
             max_std=self.latent_max_std,
             mean_bound=self.latent_mean_bound,
             kl_balance=self.latent_kl_balance,
+            overshooting_depth=self.latent_overshooting,
         )
         state_dim = self.latent.z_dim + (self.action_dim if self.previous_action_input else 0)
         self.actor = LatentActor(state_dim, self.action_dim, self.hidden_units)
@@ -237,6 +242,7 @@ class LatentPolicy(BasePolicy):
                 latent_max_std=self.latent_max_std,
                 latent_mean_bound=self.latent_mean_bound,
                 latent_kl_balance=self.latent_kl_balance,
+                latent_overshooting=self.latent_overshooting,
                 latent_recurrence=self.latent_recurrence,
                 latent_learning_rate=self.latent_learning_rate,
                 previous_action_input=self.previous_action_input,

@@ -159,6 +159,7 @@ RANGES: dict[str, Check] = {
     "latent_max_std": _POSITIVE,
     "latent_mean_bound": _POSITIVE,
     "latent_kl_balance": _numbers(0, 1),
+    "latent_overshooting": _AT_LEAST_ONE,
     "latent_recurrence": _words(*LATENT_MODELS),
 }
 
@@ -246,7 +247,8 @@ def check_related_arguments(arguments: Mapping[str, Any]) -> None:
     """
     The ranges of ``DSSLAC``'s keywords that depend on another: ``actor_critic_transitions`` (at most ``sequence_length``,
     one fewer with the policy's ``previous_action_input``: a window's first frame has no previous action in it),
-    ``stored_beliefs`` (a burn-in to start) and ``cost_target``.
+    ``stored_beliefs`` (a burn-in to start), the policy's ``latent_overshooting`` (a roll inside the window) and
+    ``cost_target``.
     """
     transitions, length = arguments["actor_critic_transitions"], arguments["sequence_length"]
     most, range_text = length, f"[1, sequence_length={length}]"
@@ -260,6 +262,12 @@ def check_related_arguments(arguments: Mapping[str, Any]) -> None:
         raise ValueError(
             f"stored_beliefs=True starts each window's burn-in from a stored belief: it needs burn_in >= 1, got "
             f"burn_in={arguments.get('burn_in', 0)}"
+        )
+    depth = (arguments["policy_kwargs"] or {}).get("latent_overshooting", 1)
+    if isinstance(depth, int) and depth > length:
+        raise ValueError(
+            f"policy_kwargs latent_overshooting rolls z1's prior up to that many steps inside a window of sequence_length="
+            f"{length} transitions: it must be in [1, {length}], got {depth}"
         )
     target, limit = arguments["cost_target"], arguments["cost_limit"]
     if target is not None and not 0.0 <= target <= limit:

@@ -1,5 +1,5 @@
 """The parameters of the latent model's diagonal Gaussians from an MLP's output: the std's floor and optional ceiling,
-the mean's optional bound, and their derivatives for the hand-written rollout backward pass."""
+the mean's optional bound, and their derivatives for the hand-written rollout backward pass; the KL of two of them."""
 
 from dataclasses import dataclass
 
@@ -60,3 +60,10 @@ class GaussianBounds:
             return grad_mean, torch.ops.aten.softplus_backward(grad_std, raw, 1.0, _SOFTPLUS_THRESHOLD)
         sigmoid = torch.sigmoid(raw)
         return grad_mean, grad_std * (self.max_std - self.min_std) * sigmoid * (1.0 - sigmoid)
+
+
+def gaussian_kl(mean_q: Tensor, std_q: Tensor, mean_p: Tensor, std_p: Tensor) -> Tensor:
+    """Elementwise analytic ``KL(N(mean_q, std_q^2) || N(mean_p, std_p^2))``, same shape as the (broadcast) inputs."""
+    var_ratio = (std_q / std_p).pow(2)
+    mean_term = ((mean_q - mean_p) / std_p).pow(2)
+    return 0.5 * (var_ratio + mean_term - 1.0 - torch.log(var_ratio))

@@ -10,9 +10,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from sb3_dsslac.nn.fused_rollout import posterior_steps
-from sb3_dsslac.nn.gaussian import STD_EPS, GaussianBounds
+from sb3_dsslac.nn.gaussian import STD_EPS, GaussianBounds, gaussian_kl
 from sb3_dsslac.nn.image_nets import check_decoder, check_encoder, check_image_shape, image_decoder, image_encoder
 from sb3_dsslac.nn.numerics import autocast_enabled
+from sb3_dsslac.nn.overshooting import overshooting_kl
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 _LOG_COST_EPS = math.log(1e-6)
@@ -49,13 +50,6 @@ def build_mlp(
     if output_activation is not None:
         layers.append(output_activation())
     return nn.Sequential(*layers)
-
-
-def gaussian_kl(mean_q: Tensor, std_q: Tensor, mean_p: Tensor, std_p: Tensor) -> Tensor:
-    """Elementwise analytic ``KL(N(mean_q, std_q^2) || N(mean_p, std_p^2))``, same shape as the (broadcast) inputs."""
-    var_ratio = (std_q / std_p).pow(2)
-    mean_term = ((mean_q - mean_p) / std_p).pow(2)
-    return 0.5 * (var_ratio + mean_term - 1.0 - torch.log(var_ratio))
 
 
 def gaussian_nll(x: Tensor, mean: Tensor, std: Tensor) -> Tensor:
@@ -186,6 +180,10 @@ class LatentModel(nn.Module):
         splits its gradient, ``alpha * KL(sg(q) || p) + (1 - alpha) * KL(q || sg(p))`` (DreamerV2's KL balancing, 0.8
         in LAMBDA): the same value, the prior pulled toward the posterior more than the posterior toward the prior,
         so that what a frame shows is kept in the belief against the KL (0.5 halves the plain KL's gradient)
+    :param overshooting_depth: 1 (the thesis's): z1's KL is to its one-step prior; ``D >= 2`` adds the mean over
+        ``d = 2 .. D`` of the KL to its prior rolled ``d`` steps open-loop (``overshooting_kl``, PlaNet's latent
+        overshooting), so that the belief must hold what the next D frames will show; D is at most a window's
+        transitions
     :param encoder_class: the encoder in place of the built-in one (None): ``encoder_class(observation_shape,
         feature_dim, **encoder_kwargs)`` must map observations (N, *observation_shape) to (N, feature_dim) or
         (N, feature_dim, 1, 1), checked on two zero observations here. It keeps its own initialisation
@@ -216,6 +214,7 @@ class LatentModel(nn.Module):
         max_std: float | None = None,
         mean_bound: float | None = None,
         kl_balance: float | None = None,
+        overshooting_depth: int = 1,
         encoder_class: type[nn.Module] | None = None,
         encoder_kwargs: dict[str, Any] | None = None,
         decoder_class: type[nn.Module] | None = None,
@@ -225,6 +224,9 @@ class LatentModel(nn.Module):
         if kl_balance is not None and not 0.0 <= kl_balance <= 1.0:
             raise ValueError(f"kl_balance must be None or a share in [0, 1], got {kl_balance}")
         self.kl_balance = kl_balance
+        if overshooting_depth < 1:
+            raise ValueError(f"overshooting_depth must be at least 1 (1: the one-step KL alone), got {overshooting_depth}")
+        self.overshooting_depth = overshooting_depth
         self.hidden_units = tuple(hidden_units)
         self.image_channels = tuple(int(width) for width in image_channels)
         if len(self.image_channels) != 4 or min(self.image_channels) < 1:
@@ -541,6 +543,12 @@ class LatentModel(nn.Module):
             prior_mean = torch.cat([first_mean.unsqueeze(1), prior_mean], dim=1)
             prior_std = torch.cat([first_std.unsqueeze(1), prior_std], dim=1)
         kl = self._kl(z1_mean, z1_std, prior_mean, prior_std)
+        terms = {"kl": kl}
+        if self.overshooting_depth > 1:
+            z2 = z[..., self.z1_dim :]
+            terms["overshooting_kl"] = overshooting_kl(
+                self.z1_prior, self.z2_transition, z2, actions, z1_mean, z1_std, self.overshooting_depth
+            )
 
         reconstruction = self.decode(z)
         image_loss = fixed_std_gaussian_nll(observations, reconstruction, self.image_std)
@@ -560,7 +568,9 @@ class LatentModel(nn.Module):
         cost_loss = -self.cost_loss_weight * cost_ll.sum(dim=1).mean()
 
         total = kl + image_loss + reward_loss + cost_loss
-        terms = {"kl": kl, "image_loss": image_loss, "reward_loss": reward_loss, "cost_loss": cost_loss}
+        if self.overshooting_depth > 1:
+            total = total + terms["overshooting_kl"]
+        terms.update(image_loss=image_loss, reward_loss=reward_loss, cost_loss=cost_loss)
         with torch.no_grad():  # computed without gradient, nothing to detach
             extremes = {
                 "prior_std_min": prior_std[:, 1:].amin(),

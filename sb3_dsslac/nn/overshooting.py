@@ -1,0 +1,60 @@
+"""
+Latent overshooting (PlaNet, Hafner et al. 2019, section 4): the KL of z1's posterior to its prior rolled open-loop
+several steps, so that the belief must hold what the frames of those steps will show.
+
+SLAC's KL compares z1's posterior only with its one-step prior ``p(z1_{t+1} | z2_t, a_t)``, and the reconstruction
+needs what the current frame shows: nothing asks the belief to keep what left the view (a pixel agent's belief held
+the goal's bearing for 3-8 steps, ``benchmarks/goal_memory.py``). Rolled open-loop from ``z2_t`` over the actions, the
+prior of ``z1_{t+d}`` can match the posterior of a frame in which the goal comes back only if ``z2_t`` knew where it
+went.
+"""
+
+import torch
+from torch import Tensor, nn
+
+from sb3_dsslac.nn.gaussian import gaussian_kl
+
+
+def overshooting_kl(
+    z1_prior: nn.Module,
+    z2_transition: nn.Module,
+    z2: Tensor,
+    actions: Tensor,
+    posterior_mean: Tensor,
+    posterior_std: Tensor,
+    depth: int,
+) -> Tensor:
+    """
+    Mean over ``d = 2 .. depth`` of ``KL(sg(q(z1_{t+d})) || p_d(z1_{t+d} | z2_t, a_t .. a_{t+d-1}))``, each summed over
+    the window's starts ``t`` and z1, mean over the batch: the prior is rolled ``d`` steps from the posterior's ``z2_t``
+    with sampled z1s (z2's transition sampled too where it is a Gaussian) and the posterior is held fixed, as in PlaNet.
+
+    :param z1_prior: ``p(z1_{t+1} | z2_t, a_t)``, ``(z2, action) -> (mean, std)``
+    :param z2_transition: ``(z1_{t+1}, z2_t, a_t) -> (mean, std)`` of z2 (a GRU's std is zero)
+    :param z2: (B, T+1, Z2) the posterior rollout's z2 (with gradient: it learns to hold what the prior needs)
+    :param actions: (B, T, A)
+    :param posterior_mean: (B, T+1, Z1) z1's posterior means
+    :param posterior_std: (B, T+1, Z1) z1's posterior stds
+    :param depth: the longest open-loop roll, 2 <= depth <= T
+    :return: the scalar term
+    """
+    batch, steps = actions.shape[:2]
+    if not 2 <= depth <= steps:
+        raise ValueError(f"overshooting depth must be in [2, {steps}] (the window's transitions), got {depth}")
+    state = z2[:, :-1]  # (B, T, Z2): the roll from every start t = 0 .. T-1
+    terms = []
+    for rolled in range(depth):
+        starts = steps - rolled  # the starts whose roll stays inside the window
+        state = state[:, :starts]
+        action = actions[:, rolled : rolled + starts]
+        prior_mean, prior_std = z1_prior(state, action)  # p(z1_{t+rolled+1} | ...), rolled steps open-loop
+        if rolled >= 1:
+            target = slice(rolled + 1, rolled + 1 + starts)
+            kl = gaussian_kl(posterior_mean[:, target].detach(), posterior_std[:, target].detach(), prior_mean, prior_std)
+            terms.append(kl.sum(dim=(1, 2)).mean())
+        if rolled + 1 < depth:
+            z1 = torch.addcmul(prior_mean, prior_std, torch.randn_like(prior_mean))
+            # rows (B * starts, .): a GRU cell takes 2-D inputs only
+            z2_mean, z2_std = z2_transition(z1.flatten(0, 1), state.flatten(0, 1), action.flatten(0, 1))
+            state = torch.addcmul(z2_mean, z2_std, torch.randn_like(z2_mean)).view(batch, starts, -1)
+    return torch.stack(terms).mean()
