@@ -60,6 +60,10 @@ class DSSLAC(CostBudget, FilteredRollouts):
         beliefs of the whole episode so far; False: the burn-in opens its own belief at its first frame. The burn-in's
         encoder passes are what it costs: at ``cpu_pixels32_gru``'s sizes 4 frames from stored beliefs ran at 0.90x
         ``cpu_pixels32_pid``'s updates/s, 16 frames from the window's own at 0.37x (benchmarks/results/burn_in_speed.md)
+    :param belief_refresh_interval: with ``stored_beliefs``, agent steps between two re-filterings of every stored
+        episode by the current latent model (``SequenceReplayBuffer.refresh_beliefs``), the first right after the latent
+        pre-training: a stored belief is the acting filter's of its time, and a buffer's oldest were written by a much
+        younger model (the warm-up's by an untrained one). 0: never, beliefs stay as stored
     :param actor_critic_transitions: transitions of each sampled sequence, its last ones, that the actor and critics
         learn from: 1 (the thesis's, the last) to ``sequence_length`` (all: that many times the samples per update). The
         IQN cost critic then runs on ``batch_size * actor_critic_transitions * n_quantiles`` rows: with 4 transitions,
@@ -142,6 +146,7 @@ class DSSLAC(CostBudget, FilteredRollouts):
         sequence_length: int = 10,
         burn_in: int = 0,
         stored_beliefs: bool = False,
+        belief_refresh_interval: int = 0,
         actor_critic_transitions: int = 1,
         tau: float = 5e-3,
         gamma: float = 0.99,
@@ -213,6 +218,8 @@ class DSSLAC(CostBudget, FilteredRollouts):
         self.sequence_length = sequence_length
         self.burn_in = burn_in
         self.stored_beliefs = stored_beliefs
+        self.belief_refresh_interval = belief_refresh_interval
+        self.beliefs_refreshed_at: int | None = None  # num_timesteps of the last refresh of the stored beliefs
         self.actor_critic_transitions = actor_critic_transitions
         self.cost_gamma = cost_gamma
         # A copy: the caller's dict is not ours to fill, and may be shared by several models
@@ -372,6 +379,8 @@ class DSSLAC(CostBudget, FilteredRollouts):
             with self.time_account.measure("latent_pretraining"):
                 self._pretrain_latent()
         with self.time_account.measure("updates"):
+            if self._beliefs_due_for_refresh():
+                self._refresh_beliefs()
             means = self.updates.train(
                 self.replay_buffer,
                 gradient_steps,
@@ -399,6 +408,26 @@ class DSSLAC(CostBudget, FilteredRollouts):
         self.latent_pretrained = True
         if loss is not None:
             self.logger.record("train/pretrain_latent_loss", loss)
+
+    def _beliefs_due_for_refresh(self) -> bool:
+        """Whether ``belief_refresh_interval`` asks for a refresh now (the first one at the first burst)."""
+        if self.belief_refresh_interval == 0:
+            return False
+        last = self.beliefs_refreshed_at
+        return last is None or self.num_timesteps - last >= self.belief_refresh_interval
+
+    def _refresh_beliefs(self) -> None:
+        """Re-filter the replay buffer's stored beliefs with the current latent model, as the acting filter steps."""
+        self.policy.set_training_mode(False)
+        with th.no_grad():
+            refreshed = self.replay_buffer.refresh_beliefs(
+                lambda frames, z2_prev, action_prev, opens: self.policy.belief_step(
+                    frames, z2_prev, action_prev, opens, deterministic=False
+                )[1]
+            )
+        self.policy.set_training_mode(True)
+        self.beliefs_refreshed_at = self.num_timesteps
+        self.logger.record("train/beliefs_refreshed", refreshed)
 
     def learn(
         self: SelfDSSLAC,

@@ -195,6 +195,54 @@ def test_burn_in_reaches_back_into_the_episode(plans, length, burn_in, stored, e
             assert not batch.stored_belief[b].any() and not batch.stored_action[b].any()
 
 
+def counting_step(frames: th.Tensor, z2_prev: th.Tensor, action_prev: th.Tensor, opens: th.Tensor) -> th.Tensor:
+    """A belief that counts the steps it continued, the frame's step, and the step of the frame its action left."""
+    counted = th.where(opens, th.zeros_like(z2_prev[:, 0]), z2_prev[:, 0] + 1)
+    previous_step = th.where(opens, th.full_like(counted, -1.0), action_prev[:, 2] * 1000.0)
+    return th.stack([counted, frames[:, 2], previous_step], dim=1)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    plans=st.lists(st.lists(episode_st, min_size=1, max_size=6), min_size=1, max_size=3),
+    extra_slots=st.integers(0, 20),
+    n_steps=st.integers(1, 80),
+)
+def test_refreshed_beliefs_filter_every_stored_episode_again(plans, extra_slots, n_steps):
+    """
+    Each stored record's belief becomes the step's of its predecessor's refreshed one (an episode's first frame opens
+    one); a record whose predecessor the ring overwrote keeps its stored belief, and its successors continue from it.
+    """
+    n_envs, slots = len(plans), 6 + extra_slots
+    buffer = SequenceReplayBuffer(
+        slots * n_envs, VEC_SPACE, ACT_SPACE, device="cpu", n_envs=n_envs, sequence_length=2, burn_in=1
+    )
+    buffer.store_beliefs(3)
+    envs = ScriptedEnvs(plans)
+    for _ in range(n_steps):
+        envs.step(buffer)
+    before = buffer.beliefs.copy()
+    refreshed = buffer.refresh_beliefs(counting_step, max_rows=2)
+    expected_count = 0
+    for env, records in enumerate(envs.records):
+        kept = records[-slots:]
+        first_slot = len(records) - len(kept)
+        expected: list[np.ndarray] = []
+        for i, (episode, step) in enumerate(kept):
+            slot = (first_slot + i) % slots
+            if step == 0:
+                value = np.array([0.0, step, -1.0])
+            elif i > 0 and kept[i - 1] == (episode, step - 1):
+                value = np.array([expected[-1][0] + 1, step, step - 1])
+            else:
+                value = before[slot, env]
+                expected_count -= 1
+            expected.append(value)
+            expected_count += 1
+            np.testing.assert_allclose(buffer.beliefs[slot, env], value, err_msg=f"env {env} episode {episode} step {step}")
+    assert refreshed == expected_count
+
+
 def test_stored_beliefs_need_a_burn_in_and_a_belief_for_every_add() -> None:
     with pytest.raises(ValueError, match="burn_in >= 1"):
         SequenceReplayBuffer(40, VEC_SPACE, ACT_SPACE, device="cpu", sequence_length=3).store_beliefs(3)

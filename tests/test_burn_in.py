@@ -171,3 +171,38 @@ def test_a_negative_burn_in_and_stored_beliefs_without_one_are_refused() -> None
         small_model(HazardPointEnv(), burn_in=-1)
     with pytest.raises(ValueError, match=r"stored_beliefs=True .* needs burn_in >= 1"):
         small_model(HazardPointEnv(), stored_beliefs=True)
+
+
+def test_stored_beliefs_are_refreshed_after_the_pretraining_and_at_the_interval(tmp_path) -> None:
+    """``belief_refresh_interval``: the buffer's beliefs are filtered again by the current model at the first burst
+    (after the pre-training), then once the interval has passed; the schedule survives save and load."""
+    model = small_model(HazardPointEnv(obs_type="pixels"), burn_in=2, stored_beliefs=True, belief_refresh_interval=25)
+    buffer = model.replay_buffer
+    refresh = buffer.refresh_beliefs
+    refreshed_at: list[tuple[int, bool]] = []
+
+    def recording_refresh(*args, **kwargs):
+        refreshed_at.append((model.num_timesteps, model.latent_pretrained))
+        return refresh(*args, **kwargs)
+
+    buffer.refresh_beliefs = recording_refresh  # type: ignore[method-assign]
+    model.learn(100)
+    # bursts after steps 50, 60, ..., 100 (learning_starts 40, train_freq 10)
+    assert refreshed_at == [(50, True), (80, True)]
+    assert model.beliefs_refreshed_at == 80
+    del buffer.refresh_beliefs
+    stored = buffer.beliefs.copy()
+    th.manual_seed(0)
+    model._refresh_beliefs()
+    written = buffer.episode_ids[:, 0] >= 0
+    assert not np.allclose(stored[written], buffer.beliefs[written])  # the acting filter's, by an older model
+    model.save(tmp_path / "refresh")
+    loaded = DSSLAC.load(tmp_path / "refresh")
+    assert loaded.belief_refresh_interval == 25 and loaded.beliefs_refreshed_at == 100
+
+
+def test_a_refresh_without_stored_beliefs_is_refused() -> None:
+    with pytest.raises(ValueError, match=r"belief_refresh_interval=10 .* needs stored_beliefs=True"):
+        small_model(HazardPointEnv(), burn_in=2, belief_refresh_interval=10)
+    with pytest.raises(ValueError, match="belief_refresh_interval"):
+        small_model(HazardPointEnv(), burn_in=2, stored_beliefs=True, belief_refresh_interval=-1)

@@ -1,5 +1,6 @@
 """Sequence replay buffer for DS-SLAC: every frame is stored once, windows are rebuilt by index arithmetic."""
 
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -216,6 +217,50 @@ class SequenceReplayBuffer(ReplayBuffer):
     def note_beliefs(self, beliefs: np.ndarray) -> None:
         """The beliefs (n_envs, belief_dim) of the frames the next ``add``'s actions were taken from."""
         self._pending_beliefs = np.asarray(beliefs, dtype=np.float32).reshape(self.n_envs, -1)
+
+    def refresh_beliefs(
+        self, belief_step: Callable[[th.Tensor, th.Tensor, th.Tensor, th.Tensor], th.Tensor], max_rows: int = 4096
+    ) -> int:
+        """
+        Filter every stored episode again and keep the new beliefs in place of the stored ones, which the acting filter
+        wrote when each frame was acted from, with the latent model of that time (the warm-up's with an untrained one).
+        All stored episodes step together, their step 0 first; a record whose episode's earlier records the ring has
+        overwritten is continued from its predecessor's stored belief.
+
+        :param belief_step: ``(frames (N, *obs_shape) as stored (uint8 images), z2_prev (N, Z2), action_prev (N, A),
+            episode_start (N,) bool) -> z2 (N, Z2)``, on ``self.device``: the acting filter's step
+        :param max_rows: records filtered per call of ``belief_step``
+        :return: the number of beliefs written
+        """
+        if not self.stores_beliefs:
+            raise ValueError("this buffer stores no beliefs to refresh: call store_beliefs first")
+        written = self.episode_ids >= 0
+        refreshed = 0
+        for step in range(int(self.episode_steps[written].max(initial=-1)) + 1):
+            slots, envs = np.nonzero(written & (self.episode_steps == step))
+            previous = (slots - 1) % self.buffer_size
+            if step > 0:  # continue only where the previous record is still this episode's
+                kept = self.episode_ids[previous, envs] == self.episode_ids[slots, envs]
+                kept &= self.episode_steps[previous, envs] == step - 1
+                slots, envs, previous = slots[kept], envs[kept], previous[kept]
+            for part in range(0, len(slots), max_rows):
+                rows = slice(part, part + max_rows)
+                frames = self.observations[slots[rows], envs[rows]]
+                n_rows = len(frames)
+                opens = th.full((n_rows,), step == 0, dtype=th.bool, device=self.device)
+                if step == 0:
+                    z2_prev = th.zeros(n_rows, self.beliefs.shape[-1], device=self.device)
+                    action_prev = th.zeros(n_rows, self.action_dim, device=self.device)
+                else:
+                    z2_prev = th.as_tensor(self.beliefs[previous[rows], envs[rows]], device=self.device)
+                    action_prev = th.as_tensor(self.actions[previous[rows], envs[rows]], device=self.device)
+                frames = _channels_first(frames) if self.channels_last_frames else frames
+                z2 = belief_step(th.as_tensor(frames, device=self.device), z2_prev, action_prev, opens)
+                self.beliefs[slots[rows], envs[rows]] = z2.float().cpu().numpy()
+                refreshed += n_rows
+        if self._device_copy is not None:
+            self._device_copy["beliefs"].copy_(th.from_numpy(self.beliefs))
+        return refreshed
 
     def _windows_valid(self, starts: np.ndarray, envs: np.ndarray, length: int) -> np.ndarray:
         """Whether records at slots ``starts .. starts + length`` (mod ring) of ``envs`` are steps of one episode."""

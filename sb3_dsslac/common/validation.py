@@ -118,6 +118,7 @@ RANGES: dict[str, Check] = {
     "latent_batch_size": _AT_LEAST_ONE,
     "sequence_length": _AT_LEAST_ONE,
     "burn_in": _NON_NEGATIVE,
+    "belief_refresh_interval": _NON_NEGATIVE,
     "tau": _numbers(0, 1, low_open=True),
     "gamma": _numbers(0, 1),
     "cost_gamma": _numbers(0, 1, high_open=True),
@@ -247,8 +248,8 @@ def check_related_arguments(arguments: Mapping[str, Any]) -> None:
     """
     The ranges of ``DSSLAC``'s keywords that depend on another: ``actor_critic_transitions`` (at most ``sequence_length``,
     one fewer with the policy's ``previous_action_input``: a window's first frame has no previous action in it),
-    ``stored_beliefs`` (a burn-in to start), the policy's ``latent_overshooting`` (a roll inside the window) and
-    ``cost_target``.
+    ``stored_beliefs`` (a burn-in to start), ``belief_refresh_interval`` (stored beliefs), the policy's
+    ``latent_overshooting`` (a roll inside the window) and ``cost_target``.
     """
     transitions, length = arguments["actor_critic_transitions"], arguments["sequence_length"]
     most, range_text = length, f"[1, sequence_length={length}]"
@@ -262,6 +263,11 @@ def check_related_arguments(arguments: Mapping[str, Any]) -> None:
         raise ValueError(
             f"stored_beliefs=True starts each window's burn-in from a stored belief: it needs burn_in >= 1, got "
             f"burn_in={arguments.get('burn_in', 0)}"
+        )
+    if arguments.get("belief_refresh_interval", 0) > 0 and not arguments.get("stored_beliefs"):
+        raise ValueError(
+            f"belief_refresh_interval={arguments['belief_refresh_interval']} re-filters the replay buffer's stored beliefs: "
+            "it needs stored_beliefs=True"
         )
     depth = (arguments["policy_kwargs"] or {}).get("latent_overshooting", 1)
     if isinstance(depth, int) and depth > length:

@@ -1,0 +1,108 @@
+"""Latent overshooting (``latent_overshooting``): z1's KL to its prior rolled open-loop several steps."""
+
+import pytest
+import torch as th
+from stable_baselines3.common.logger import configure
+
+from sb3_dsslac.nn.latent import LatentModel, gaussian_kl
+from sb3_dsslac.nn.overshooting import overshooting_kl
+from sb3_dsslac.nn.recurrent_latent import RecurrentLatentModel
+from tests.synthetic_envs import HazardPointEnv
+from tests.test_dsslac import SMALL_POLICY, small_model
+
+BATCH, STEPS, Z1, Z2, ACTIONS = 3, 4, 4, 8, 2
+
+
+@pytest.fixture(params=[LatentModel, RecurrentLatentModel], ids=["gaussian", "gru"])
+def latent(request) -> LatentModel:
+    th.manual_seed(0)
+    return request.param((3, 32, 32), ACTIONS, feature_dim=16, z1_dim=Z1, z2_dim=Z2, hidden_units=(32, 32))
+
+
+def rollout_inputs() -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
+    """A posterior's z2 (B, T+1, Z2), actions (B, T, A), z1's posterior means and stds (B, T+1, Z1)."""
+    th.manual_seed(3)
+    z2 = th.rand(BATCH, STEPS + 1, Z2, requires_grad=True)
+    actions = th.rand(BATCH, STEPS, ACTIONS) * 2 - 1
+    mean, std = th.randn(BATCH, STEPS + 1, Z1, requires_grad=True), th.rand(BATCH, STEPS + 1, Z1) + 0.5
+    return z2, actions, mean, std
+
+
+def reference_overshooting_kl(latent: LatentModel, z2, actions, mean, std, depth: int) -> th.Tensor:
+    """Start by start and step by step, drawing the same noise tensors as ``overshooting_kl`` in the same order."""
+    noise = []  # per rolled step: z1's (B, starts, Z1) and z2's (B * starts, Z2)
+    for rolled in range(depth - 1):
+        starts = STEPS - rolled
+        noise.append((th.randn(BATCH, starts, Z1), th.randn(BATCH * starts, Z2).view(BATCH, starts, Z2)))
+    per_depth = []
+    for d in range(2, depth + 1):
+        total = 0.0
+        for row in range(BATCH):
+            for start in range(STEPS - d + 1):
+                state = z2[row, start]
+                for rolled in range(d - 1):
+                    action = actions[row, start + rolled]
+                    prior_mean, prior_std = latent.z1_prior(state, action)
+                    z1 = prior_mean + prior_std * noise[rolled][0][row, start]
+                    z2_mean, z2_std = latent.z2_transition(z1[None], state[None], action[None])
+                    state = (z2_mean + z2_std * noise[rolled][1][row, start][None])[0]
+                prior_mean, prior_std = latent.z1_prior(state, actions[row, start + d - 1])
+                total = total + gaussian_kl(mean[row, start + d], std[row, start + d], prior_mean, prior_std).sum()
+        per_depth.append(total / BATCH)
+    return th.stack(per_depth).mean()
+
+
+@pytest.mark.parametrize("depth", [2, 4])
+def test_overshooting_kl_is_the_kl_to_the_prior_rolled_open_loop(latent: LatentModel, depth: int) -> None:
+    z2, actions, mean, std = rollout_inputs()
+    th.manual_seed(4)
+    value = overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, depth)
+    th.manual_seed(4)
+    expected = reference_overshooting_kl(latent, z2, actions, mean, std, depth)
+    th.testing.assert_close(value, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_overshooting_trains_the_prior_and_the_belief_not_the_posterior(latent: LatentModel) -> None:
+    """PlaNet holds the posterior fixed: the gradient reaches z2 (what the belief holds) and the prior, not z1's posterior."""
+    z2, actions, mean, std = rollout_inputs()
+    overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, 3).backward()
+    assert mean.grad is None
+    assert z2.grad is not None and z2.grad[:, :-1].abs().sum() > 0
+    assert th.all(z2.grad[:, -1] == 0)  # the last frame starts no roll
+    assert all(param.grad is not None for param in latent.z1_prior.parameters())
+
+
+def test_depth_one_is_the_thesis_loss_and_deeper_adds_the_term(latent: LatentModel) -> None:
+    th.manual_seed(5)
+    observations = th.rand(BATCH, STEPS + 1, 3, 32, 32)
+    actions = th.rand(BATCH, STEPS, ACTIONS) * 2 - 1
+    zeros = th.zeros(BATCH, STEPS)
+    noise = (th.randn(STEPS + 1, BATCH, Z1), th.randn(STEPS + 1, BATCH, Z2))
+    total, terms, _ = latent.loss_and_filter(observations, actions, zeros, zeros, zeros, noise=noise)
+    assert "overshooting_kl" not in terms
+    latent.overshooting_depth = 3
+    th.manual_seed(6)
+    deeper, deeper_terms, _ = latent.loss_and_filter(observations, actions, zeros, zeros, zeros, noise=noise)
+    for key in ("kl", "image_loss", "reward_loss", "cost_loss"):
+        th.testing.assert_close(deeper_terms[key], terms[key])
+    assert deeper_terms["overshooting_kl"] > 0
+    th.testing.assert_close(deeper, total + deeper_terms["overshooting_kl"])
+
+
+def test_a_model_with_overshooting_learns_and_logs_the_term(tmp_path) -> None:
+    model = small_model(HazardPointEnv(obs_type="pixels"), policy_kwargs={**SMALL_POLICY, "latent_overshooting": 3})
+    assert model.policy.latent.overshooting_depth == 3
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(100, log_interval=1)
+    logged = (tmp_path / "progress.csv").read_text().splitlines()[0].split(",")
+    assert "train/overshooting_kl" in logged
+    assert all(th.isfinite(param).all() for param in model.policy.parameters())
+
+
+def test_a_roll_beyond_the_window_or_under_one_step_is_refused() -> None:
+    with pytest.raises(ValueError, match=r"latent_overshooting .* sequence_length=3 .* \[1, 3\], got 4"):
+        small_model(HazardPointEnv(), policy_kwargs={**SMALL_POLICY, "latent_overshooting": 4})
+    with pytest.raises(ValueError, match="overshooting_depth must be at least 1"):
+        small_model(HazardPointEnv(), policy_kwargs={**SMALL_POLICY, "latent_overshooting": 0})
+    with pytest.raises(ValueError, match="overshooting depth must be in"):
+        overshooting_kl(th.nn.Identity(), th.nn.Identity(), *rollout_inputs()[:2], *rollout_inputs()[2:], STEPS + 1)
