@@ -212,6 +212,7 @@ def test_refreshed_beliefs_filter_every_stored_episode_again(plans, extra_slots,
     """
     Each stored record's belief becomes the step's of its predecessor's refreshed one (an episode's first frame opens
     one); a record whose predecessor the ring overwrote keeps its stored belief, and its successors continue from it.
+    A device copy (the GPU path) gets the new beliefs.
     """
     n_envs, slots = len(plans), 6 + extra_slots
     buffer = SequenceReplayBuffer(
@@ -222,7 +223,10 @@ def test_refreshed_beliefs_filter_every_stored_episode_again(plans, extra_slots,
     for _ in range(n_steps):
         envs.step(buffer)
     before = buffer.beliefs.copy()
+    # as on a GPU: a device copy of the sampled arrays, whose beliefs the refresh brings up to date
+    buffer._device_copy = {name: th.from_numpy(getattr(buffer, name).copy()) for name in buffer._SAMPLED}
     refreshed = buffer.refresh_beliefs(counting_step, max_rows=2)
+    np.testing.assert_array_equal(buffer._device_copy["beliefs"].numpy(), buffer.beliefs)
     expected_count = 0
     for env, records in enumerate(envs.records):
         kept = records[-slots:]
