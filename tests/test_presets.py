@@ -15,6 +15,7 @@ MEASURED_AS = {
     "cpu_pixels32_pid": "learning_PointGoal1_pixels_cpu_pixels32_bounded_actor_critic_transitions_4_n_quantiles_8_lagrange_pid"
     "_pid_kp_0.004_pid_ki_0.0001_pid_kd_0/seed20_run/config.yaml",
     "cpu_pixels32_prev_action": "learning_PointGoal1_pixels_cpu_pixels32_prev_action/seed20_run/config.yaml",
+    "cpu_pixels32_gru_overshooting": "learning_PointGoal1_pixels_cpu_pixels32_gru_overshooting/seed60_run/config.yaml",
 }
 
 

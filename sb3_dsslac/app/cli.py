@@ -78,6 +78,7 @@ PRESET_SUMMARIES: dict[str, str] = {
     "cpu_pixels32_prev_action": "cpu_pixels32_pid with the previous action beside the belief (actor and critics)",
     "cpu_pixels32_gru": "cpu_pixels32_pid with a deterministic GRU z2 (an RSSM's recurrent state) in the latent model",
     "cpu_pixels32_gru_stored": "cpu_pixels32_gru whose windows continue the acting filter's stored belief (a 4-frame burn-in)",
+    "cpu_pixels32_gru_overshooting": "cpu_pixels32_gru_stored with latent overshooting (z1's prior rolled 2-4 steps ahead)",
 }
 
 
