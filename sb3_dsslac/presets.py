@@ -180,9 +180,10 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
     # cpu_pixels32_gru_stored with latent overshooting over each window (``latent_overshooting=4``): z1's KL is also taken
     # to its prior rolled 2-4 steps open-loop from the posterior's z2, so that the belief must hold what the next frames
-    # will show. The belief keeps no more of the goal out of view by the goal-memory probe (0.20), but the agent keeps the
-    # goal in view more (62% of its steps): PointGoal1 by 300k, seed 60, 14.33 at cost 19.2. The update costs about
-    # cpu_pixels32_gru_stored's (benchmarks/results/overshooting_speed.md)
+    # will show. PointGoal1 by 300k, seeds 60 and 63: 12.59 at cost 19.1 (14.33 at 19.2 and 10.85 at 19.0), 97% of the
+    # hazard-avoiding script's 12.97 on the same frames. The belief keeps no more of the goal out of view by the
+    # goal-memory probe (0.20 and 0.36), but the agent keeps the goal in view more (56-62% of its steps). The update costs
+    # about cpu_pixels32_gru_stored's (benchmarks/results/overshooting_speed.md); 57-60 CPU minutes per 300k
     "cpu_pixels32_gru_overshooting": {
         **CPU_PIXELS32_PID,
         "burn_in": 4,
