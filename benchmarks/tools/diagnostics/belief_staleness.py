@@ -22,9 +22,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import numpy as np
 import torch as th
 from machine import cpu_model
+from run_checkpoint import checkpoint_model
 
-from sb3_dsslac import DSSLAC
-from sb3_dsslac.app.runs import find_checkpoint
 from sb3_dsslac.common.buffers import SequenceReplayBuffer
 from sb3_dsslac.common.policies import LatentPolicy
 
@@ -63,12 +62,7 @@ def main() -> None:
     parser.add_argument("--age-bins", type=int, default=5, help="groups of records by when they were written")
     parser.add_argument("--windows", type=int, default=4000, help="windows whose burn-in is compared")
     args = parser.parse_args()
-    checkpoint = find_checkpoint(args.run)
-    if checkpoint is None:
-        raise SystemExit(f"No checkpoint (model and replay buffer) in {args.run}")
-    th.set_num_threads(1)
-    model = DSSLAC.load(checkpoint.model, device="cpu")
-    model.load_replay_buffer(checkpoint.replay_buffer)
+    model, checkpoint = checkpoint_model(args.run)
     buffer = model.replay_buffer
     if not model.stored_beliefs or buffer.n_envs != 1 or buffer.full:
         raise SystemExit("This tool reads runs with stored_beliefs=True, one env and a buffer that has not wrapped")

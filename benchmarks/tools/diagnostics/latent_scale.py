@@ -19,9 +19,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import torch as th
 from machine import cpu_model
+from run_checkpoint import checkpoint_model
 
-from sb3_dsslac import DSSLAC
-from sb3_dsslac.app.runs import find_checkpoint
 from sb3_dsslac.nn.latent import LatentModel, gaussian_kl
 
 
@@ -44,12 +43,7 @@ def main() -> None:
     parser.add_argument("--jacobians", type=int, default=16, help="windows whose z2 recurrence Jacobian is measured")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    checkpoint = find_checkpoint(args.run)
-    if checkpoint is None:
-        raise SystemExit(f"No checkpoint (model and replay buffer) in {args.run}")
-    th.set_num_threads(1)
-    model = DSSLAC.load(checkpoint.model, device="cpu")
-    model.load_replay_buffer(checkpoint.replay_buffer)
+    model, checkpoint = checkpoint_model(args.run)
     latent = model.policy.latent
     print(f"{checkpoint.model} ({checkpoint.timesteps} agent steps), {cpu_model()}")
 
