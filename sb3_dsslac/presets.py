@@ -88,6 +88,14 @@ CPU_PIXELS32_PID: dict[str, Any] = {
     "pid_kd": 0.0,
 }
 
+# cpu_pixels32_pid with a GRU z2 and windows that continue the acting filter's stored beliefs (PRESETS says what it reaches)
+CPU_PIXELS32_GRU_STORED: dict[str, Any] = {
+    **CPU_PIXELS32_PID,
+    "burn_in": 4,
+    "stored_beliefs": True,
+    "policy_kwargs": {**CPU_PIXELS32_BOUNDED["policy_kwargs"], "latent_recurrence": "gru"},
+}
+
 PRESETS: dict[str, dict[str, Any]] = {
     # DSSLAC's defaults are the thesis's Table 5.2; the reference code's step-size halving on top
     "thesis": {"lr_decay_milestone": THESIS_LR_DECAY_MILESTONE},
@@ -172,12 +180,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # 1.11x cpu_pixels32_pid's (0.90x its updates/s side by side: benchmarks/results/burn_in_speed.md). PointGoal1 by
     # 300k, seeds 50 and 51: 4.80 at cost 17.9 (9.19 at 22.3 and 0.41 at 13.5); goal-memory probe 0.11-0.26 out of view
     # by then (0.34 at 120k): the learner sees the acting filter's beliefs, but the belief keeps no more than the GRU's
-    "cpu_pixels32_gru_stored": {
-        **CPU_PIXELS32_PID,
-        "burn_in": 4,
-        "stored_beliefs": True,
-        "policy_kwargs": {**CPU_PIXELS32_BOUNDED["policy_kwargs"], "latent_recurrence": "gru"},
-    },
+    "cpu_pixels32_gru_stored": CPU_PIXELS32_GRU_STORED,
     # cpu_pixels32_gru_stored with latent overshooting over each window (``latent_overshooting=4``): z1's KL is also taken
     # to its prior rolled 2-4 steps open-loop from the posterior's z2, so that the belief must hold what the next frames
     # will show. PointGoal1 by 300k, seeds 60 and 63: 12.59 at cost 19.1 (14.33 at 19.2 and 10.85 at 19.0), 97% of the
@@ -185,10 +188,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     # goal-memory probe (0.20 and 0.36), but the agent keeps the goal in view more (56-62% of its steps). The update costs
     # about cpu_pixels32_gru_stored's (benchmarks/results/overshooting_speed.md); 57-60 CPU minutes per 300k
     "cpu_pixels32_gru_overshooting": {
-        **CPU_PIXELS32_PID,
-        "burn_in": 4,
-        "stored_beliefs": True,
-        "policy_kwargs": {**CPU_PIXELS32_BOUNDED["policy_kwargs"], "latent_recurrence": "gru", "latent_overshooting": 4},
+        **CPU_PIXELS32_GRU_STORED,
+        "policy_kwargs": {**CPU_PIXELS32_GRU_STORED["policy_kwargs"], "latent_overshooting": 4},
     },
 }
 
