@@ -270,21 +270,38 @@ def probe_score(inputs: np.ndarray, bearings: np.ndarray, episode_ids: np.ndarra
     return ProbeScore(float(np.mean(r2s)), float(np.median(pooled)), len(pooled))
 
 
+class PooledSteps(NamedTuple):
+    """Every agent step of several ``GoalEpisode``s, in episode order: what the probes read."""
+
+    since: np.ndarray  # (N,) agent steps since the goal was last in view (``steps_since_in_view``)
+    episode_ids: np.ndarray  # (N,) the index of each step's episode
+    bearings: np.ndarray  # (N,) rad
+    beliefs: np.ndarray  # (N, Z) float64
+    previous_actions: np.ndarray  # (N, A) float64
+
+
+def pooled_steps(episodes: list[GoalEpisode]) -> PooledSteps:
+    """The steps of ``episodes`` pooled, each tagged with its episode."""
+    return PooledSteps(
+        np.concatenate([steps_since_in_view(episode.in_fov, episode.new_goal) for episode in episodes]),
+        np.concatenate([np.full(len(episode.bearings), index) for index, episode in enumerate(episodes)]),
+        np.concatenate([episode.bearings for episode in episodes]),
+        np.concatenate([episode.beliefs for episode in episodes]).astype(np.float64),
+        np.concatenate([episode.previous_actions for episode in episodes]).astype(np.float64),
+    )
+
+
 def goal_memory_scores(episodes: list[GoalEpisode]) -> dict[str, KindScores]:
     """The probes on each kind of step of ``STEP_KINDS``, by its name."""
-    since = np.concatenate([steps_since_in_view(episode.in_fov, episode.new_goal) for episode in episodes])
-    episode_ids = np.concatenate([np.full(len(episode.bearings), index) for index, episode in enumerate(episodes)])
-    bearings = np.concatenate([episode.bearings for episode in episodes])
-    beliefs = np.concatenate([episode.beliefs for episode in episodes]).astype(np.float64)
-    previous_actions = np.concatenate([episode.previous_actions for episode in episodes]).astype(np.float64)
+    steps = pooled_steps(episodes)
     scores = {}
     for name, (fewest, most) in STEP_KINDS.items():
-        rows = (since >= fewest) & (since <= most)
+        rows = (steps.since >= fewest) & (steps.since <= most)
         scores[name] = KindScores(
             float(rows.mean()),
             int(rows.sum()),
-            probe_score(beliefs, bearings, episode_ids, rows),
-            probe_score(previous_actions, bearings, episode_ids, rows),
+            probe_score(steps.beliefs, steps.bearings, steps.episode_ids, rows),
+            probe_score(steps.previous_actions, steps.bearings, steps.episode_ids, rows),
         )
     return scores
 

@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np
 import torch as th
-from goal_memory import STEP_KINDS, goal_episode, probe_score, steps_since_in_view
+from goal_memory import STEP_KINDS, goal_episode, pooled_steps, probe_score
 from machine import cpu_model
 
 from sb3_dsslac import DSSLAC
@@ -64,11 +64,7 @@ def main() -> None:
         episodes = [goal_episode(model, env, seed) for seed in range(args.seed, args.seed + args.episodes)]
     finally:
         env.close()
-    since = np.concatenate([steps_since_in_view(episode.in_fov, episode.new_goal) for episode in episodes])
-    episode_ids = np.concatenate([np.full(len(episode.bearings), index) for index, episode in enumerate(episodes)])
-    bearings = np.concatenate([episode.bearings for episode in episodes])
-    beliefs = np.concatenate([episode.beliefs for episode in episodes]).astype(np.float64)
-    previous_actions = np.concatenate([episode.previous_actions for episode in episodes]).astype(np.float64)
+    since, episode_ids, bearings, beliefs, previous_actions = pooled_steps(episodes)
     starts = np.concatenate([np.arange(len(episode.bearings)) == 0 for episode in episodes])
     readouts = {
         "belief, linear": beliefs,
