@@ -36,6 +36,16 @@ def test_the_transition_is_a_gru_step_of_z1_and_the_action() -> None:
     assert th.equal(std, th.zeros_like(z2_next))
 
 
+def test_the_transition_takes_any_leading_dims_as_rows() -> None:
+    """(B, T, .) inputs, as the Gaussian transition takes them (latent overshooting, latent_scale.py), step each row."""
+    transition = GRUTransition(z1_dim=4, z2_dim=8, action_dim=2, input_units=16)
+    z1, z2, action = th.randn(3, 5, 4), th.rand(3, 5, 8) * 2 - 1, th.rand(3, 5, 2)
+    z2_next, std = transition(z1, z2, action)
+    rows, _ = transition(z1.flatten(0, 1), z2.flatten(0, 1), action.flatten(0, 1))
+    assert z2_next.shape == std.shape == (3, 5, 8)
+    th.testing.assert_close(z2_next, rows.view(3, 5, 8))
+
+
 def test_the_acting_filter_follows_the_training_rollout() -> None:
     """The filter's means step by step are the rollout's with zero noise: the actor acts on the beliefs it learned on."""
     latent = small_latent()

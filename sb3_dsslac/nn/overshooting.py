@@ -38,7 +38,7 @@ def overshooting_kl(
     :param depth: the longest open-loop roll, 2 <= depth <= T
     :return: the scalar term
     """
-    batch, steps = actions.shape[:2]
+    steps = actions.shape[1]
     if not 2 <= depth <= steps:
         raise ValueError(f"overshooting depth must be in [2, {steps}] (the window's transitions), got {depth}")
     state = z2[:, :-1]  # (B, T, Z2): the roll from every start t = 0 .. T-1
@@ -54,7 +54,6 @@ def overshooting_kl(
             terms.append(kl.sum(dim=(1, 2)).mean())
         if rolled + 1 < depth:
             z1 = torch.addcmul(prior_mean, prior_std, torch.randn_like(prior_mean))
-            # rows (B * starts, .): a GRU cell takes 2-D inputs only
-            z2_mean, z2_std = z2_transition(z1.flatten(0, 1), state.flatten(0, 1), action.flatten(0, 1))
-            state = torch.addcmul(z2_mean, z2_std, torch.randn_like(z2_mean)).view(batch, starts, -1)
+            z2_mean, z2_std = z2_transition(z1, state, action)
+            state = torch.addcmul(z2_mean, z2_std, torch.randn_like(z2_mean))
     return torch.stack(terms).mean()

@@ -30,8 +30,12 @@ class GRUTransition(nn.Module):
         self.cell = nn.GRUCell(input_units, z2_dim)
 
     def forward(self, z1: Tensor, z2_prev: Tensor, action: Tensor) -> tuple[Tensor, Tensor]:
-        """z1 (N, Z1), z2_prev (N, Z2), action (N, A) -> z2 (N, Z2) and its std, zero (N, Z2)."""
-        z2 = self.cell(self.inputs(torch.cat([z1, action], dim=-1)), z2_prev)
+        """z1 (..., Z1), z2_prev (..., Z2), action (..., A) -> z2 (..., Z2) and its std, zero (..., Z2)."""
+        inputs = self.inputs(torch.cat([z1, action], dim=-1))
+        if z2_prev.dim() > 2:  # rows through the cell: a GRU cell takes 1-D or 2-D inputs only
+            z2 = self.cell(inputs.reshape(-1, inputs.shape[-1]), z2_prev.reshape(-1, z2_prev.shape[-1])).view_as(z2_prev)
+        else:
+            z2 = self.cell(inputs, z2_prev)
         return z2, torch.zeros_like(z2)
 
 
