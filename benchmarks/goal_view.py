@@ -73,17 +73,22 @@ def goal_in_view(frames: np.ndarray, min_share: float = IN_VIEW_SHARE) -> np.nda
 
 def goal_in_fov(env) -> bool:
     """
-    Whether the goal's centre is inside the horizontal field of view of the robot's ``vision`` camera, from the
-    simulator state: the goal in the camera's frame (which looks along its -z) in front of it, at a bearing within
-    half the horizontal field of view (fovy times the aspect ratio: Point 90 degrees, Car MuJoCo's default 45). Vertically
-    the goal is always inside the frame once it is in front (the camera is pitched down about 22 degrees and the goal is
-    reached before it could leave the bottom of the frame), so only the bearing is checked.
+    Whether the goal's centre is inside the horizontal field of view of the robot's ``vision`` camera (or, for an env
+    made with ``back_camera=True``, of its ``vision_back`` camera too), from the simulator state: the goal in the
+    camera's frame (which looks along its -z) in front of it, at a bearing within half the horizontal field of view
+    (fovy times the aspect ratio: Point 90 degrees, Car MuJoCo's default 45). Vertically the goal is always inside the
+    frame once it is in front (the camera is pitched down about 22 degrees and the goal is reached before it could leave
+    the bottom of the frame), so only the bearing is checked.
 
     :param env: a ``safety_envs`` Goal env (``SafetyGymEnv``, or a wrapper of one)
     """
     sim = env.unwrapped
-    camera, data = sim.ids.vision_camera, sim.data
-    offset = data.xpos[sim.ids.goal_body] - data.cam_xpos[camera]
-    x, _, z = data.cam_xmat[camera].reshape(3, 3).T @ offset  # world -> camera frame
-    half_width = np.tan(np.radians(sim.model.cam_fovy[camera]) / 2) * sim.width / sim.height
-    return bool(z < 0 and abs(x) <= -z * half_width)
+    data = sim.data
+    cameras = (sim.ids.vision_camera, sim.ids.vision_back_camera) if sim.back_camera else (sim.ids.vision_camera,)
+    for camera in cameras:
+        offset = data.xpos[sim.ids.goal_body] - data.cam_xpos[camera]
+        x, _, z = data.cam_xmat[camera].reshape(3, 3).T @ offset  # world -> camera frame
+        half_width = np.tan(np.radians(sim.model.cam_fovy[camera]) / 2) * sim.width / sim.height
+        if z < 0 and abs(x) <= -z * half_width:
+            return True
+    return False

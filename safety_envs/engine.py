@@ -73,7 +73,8 @@ class SafetyGymEnv(gym.Env):
     :param robot: ``"Point"``, ``"Car"`` or ``"Doggo"``
     :param task: ``"Goal"``, ``"Button"`` or ``"Push"``
     :param level: 0, 1 or 2
-    :param obs_type: ``"pixels"`` (uint8 (height, width, 3) image from the robot's ``vision`` camera, upright),
+    :param obs_type: ``"pixels"`` (uint8 (height, width, 3) image from the robot's ``vision`` camera, upright;
+        (height, 2 * width, 3) with ``back_camera``),
         ``"state"`` (float32 Safety-Gym vector: sensors and 16-bin lidars) or ``"both"`` (Dict of the two)
     :param action_repeat: simulator steps per agent step
     :param width: image width in pixels
@@ -104,6 +105,7 @@ class SafetyGymEnv(gym.Env):
         render_height: int = 256,
         physics_sleep: bool = True,
         color_goal_button: bool = True,
+        back_camera: bool = False,
     ) -> None:
         self.robot_spec = get_robot(robot)
         self.task_spec: TaskSpec = get_task(task, level, self.robot_spec)
@@ -120,6 +122,9 @@ class SafetyGymEnv(gym.Env):
         self.render_mode = render_mode
         self.render_width, self.render_height = int(render_width), int(render_height)
         self.color_goal_button = bool(color_goal_button)
+        if not isinstance(back_camera, (bool, np.bool_)):
+            raise ValueError(f"back_camera must be True or False, got {back_camera!r}")
+        self.back_camera = bool(back_camera)
 
         self.model, self.ids = build_world(self.robot_spec, self.task_spec, (self.width, self.height))
         self.model.vis.quality.offsamples = 0
@@ -143,7 +148,8 @@ class SafetyGymEnv(gym.Env):
         self._ctrl_low, self._ctrl_high = ctrlrange[:, 0].copy(), ctrlrange[:, 1].copy()
         self.action_space = spaces.Box(-1.0, 1.0, shape=(self.model.nu,), dtype=np.float32)
         self._build_state_layout()
-        pixels = spaces.Box(0, 255, shape=(self.height, self.width, 3), dtype=np.uint8)
+        frame_width = 2 * self.width if self.back_camera else self.width
+        pixels = spaces.Box(0, 255, shape=(self.height, frame_width, 3), dtype=np.uint8)
         state = spaces.Box(-np.inf, np.inf, shape=(self._state_size,), dtype=np.float32)
         self.observation_space = {"pixels": pixels, "state": state, "both": spaces.Dict(pixels=pixels, state=state)}[obs_type]
 
@@ -154,6 +160,7 @@ class SafetyGymEnv(gym.Env):
         self._vision = self._make_renderer(self.height, self.width) if obs_type != "state" else None
         self._tracker: mujoco.Renderer | None = None
         self._frame = np.zeros((self.height, self.width, 3), dtype=np.uint8)
+        self._back_frame = np.zeros((self.height, self.width, 3), dtype=np.uint8)
 
         spec = self.task_spec
         self._hazards_xy = np.zeros((spec.hazards_num, 2))
@@ -189,11 +196,15 @@ class SafetyGymEnv(gym.Env):
         return renderer
 
     def _render_vision(self) -> np.ndarray:
-        """The first-person image (height, width, 3) uint8, upright."""
+        """The first-person image (height, width, 3) uint8, upright; (height, 2 * width, 3) with the back camera's."""
         if self._vision is None:  # closed, then used again
             self._vision = self._make_renderer(self.height, self.width)
         self._vision.update_scene(self.data, camera=self.ids.vision_camera, scene_option=self._scene_option)
-        return self._vision.render(out=self._frame).copy()
+        front = self._vision.render(out=self._frame)
+        if not self.back_camera:
+            return front.copy()
+        self._vision.update_scene(self.data, camera=self.ids.vision_back_camera, scene_option=self._scene_option)
+        return np.concatenate((front, self._vision.render(out=self._back_frame)), axis=1)
 
     def render(self) -> np.ndarray | None:
         """Third-person tracking view (render_height, render_width, 3) uint8 when ``render_mode="rgb_array"``."""

@@ -69,6 +69,7 @@ class WorldIds:
     gremlin_mocaps: np.ndarray  # (n_gremlins,) the mocap body each cube is welded to
     gremlin_geom_mask: np.ndarray  # (ngeom,) bool: the colliding cubes (not the ghosts)
     vision_camera: int
+    vision_back_camera: int  # the vision camera turned half a turn about the robot's vertical axis
     track_camera: int
 
 
@@ -137,6 +138,7 @@ def build_xml(robot: RobotSpec, task: TaskSpec, offscreen_size: tuple[int, int])
 
     robot_body = world.find("body[@name='robot']")
     assert robot_body is not None, f"{robot.xml} has no body named 'robot'"
+    _add_back_camera(robot_body)
     # Third-person view for render(): 3 m behind (-y) and 4 m above the robot, world-aligned, following it.
     ET.SubElement(robot_body, "camera", name="track", mode="track", pos="0 -3 4", xyaxes="1 0 0 0 0.8 0.6", fovy="60")
 
@@ -240,6 +242,26 @@ def _add_gremlins(root: ET.Element, world: ET.Element, task: TaskSpec) -> None:
         )
 
 
+def _add_back_camera(robot_body: ET.Element) -> None:
+    """
+    Add ``vision_back`` beside the robot's ``vision`` camera: the same camera turned half a turn about its body's z axis
+    (the robot's vertical), so it looks behind the robot from the mirrored mount with the same field of view.
+    """
+    for parent in robot_body.iter("body"):
+        vision = parent.find("camera[@name='vision']")
+        if vision is not None:
+            break
+    else:
+        raise ValueError("the robot has no camera named 'vision'")
+    half_turn = np.array([-1.0, -1.0, 1.0])  # rotation by pi about z: (x, y, z) -> (-x, -y, z)
+    back = ET.SubElement(parent, "camera", name="vision_back")
+    back.set("pos", _fmt(np.array(vision.get("pos", "0 0 0").split(), dtype=float) * half_turn))
+    xyaxes = np.array(vision.get("xyaxes").split(), dtype=float).reshape(2, 3) * half_turn
+    back.set("xyaxes", _fmt(xyaxes.ravel()))
+    if vision.get("fovy") is not None:
+        back.set("fovy", vision.get("fovy"))
+
+
 def _subtree_bodies(model: mujoco.MjModel, root: int) -> np.ndarray:
     """Ids of ``root`` and all its descendants."""
     inside = np.zeros(model.nbody, dtype=bool)
@@ -304,6 +326,7 @@ def build_world(robot: RobotSpec, task: TaskSpec, offscreen_size: tuple[int, int
         gremlin_mocaps=model.body_mocapid[bodies("gremlin{}mocap", task.gremlins_num)].copy(),
         gremlin_geom_mask=np.isin(model.geom_bodyid, gremlin_bodies),
         vision_camera=camera("vision"),
+        vision_back_camera=camera("vision_back"),
         track_camera=camera("track"),
     )
     return model, ids

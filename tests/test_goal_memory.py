@@ -31,18 +31,20 @@ def test_the_bearing_is_counter_clockwise_from_the_heading(benchmarks) -> None:
 
 
 @pytest.mark.parametrize(("robot", "yaw"), [("Point", 0.0), ("Car", np.pi / 2)])  # both facing +x
-def test_the_goal_bearing_is_from_where_the_camera_looks(benchmarks, robot: str, yaw: float) -> None:
+@pytest.mark.parametrize("back_camera", [False, True])
+def test_the_goal_bearing_is_from_where_the_camera_looks(benchmarks, robot: str, yaw: float, back_camera: bool) -> None:
     from goal_memory import goal_bearing
     from goal_view import goal_in_fov
 
-    env = make_env(f"SafetyGym/{robot}Goal1-v0", "pixels", env_kwargs=PIXELS32)
+    env = make_env(f"SafetyGym/{robot}Goal1-v0", "pixels", env_kwargs={**PIXELS32, "back_camera": back_camera})
+    seen = (0.0, 180.0) if back_camera else (0.0,)
     try:
         # Ahead, to the left, to the right, behind; the Car's camera sits 0.1 m behind its centre
         for goal_xy, degrees in (([1.5, 0.0], 0.0), ([0.0, 1.5], 90.0), ([0.0, -1.5], -90.0), ([-1.5, 0.0], 180.0)):
             env.reset(seed=0, options={"robot_xy": [0.0, 0.0], "robot_yaw": yaw, "goal_xy": goal_xy, **FAR})
             error = (np.degrees(goal_bearing(env)) - degrees + 180.0) % 360.0 - 180.0
             assert abs(error) < 5.0, (goal_xy, np.degrees(goal_bearing(env)))
-            assert goal_in_fov(env) is (degrees == 0.0)
+            assert goal_in_fov(env) is (degrees in seen)
     finally:
         env.close()
 

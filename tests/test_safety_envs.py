@@ -439,6 +439,25 @@ def test_first_frame_shows_hazards_vase_and_goal(robot):
     assert green_pixels(obs) > 20
 
 
+@pytest.mark.parametrize("robot", ["Point", "Car", "Doggo"])
+def test_back_camera_sees_behind_the_robot(robot):
+    heading = {"Point": 0.0, "Car": np.pi / 2, "Doggo": 0.0}[robot]  # the camera looks along +x in each case
+    parked = {"hazards_xy": park(8), "vases_xy": park(1, -FAR)}
+    front = make_env(robot, "Goal", 1)
+    both = make_env(robot, "Goal", 1, back_camera=True)
+    assert both.observation_space.shape == (64, 128, 3)
+    for goal_x, seen_in in ((1.2, "front"), (-1.2, "back")):
+        options = {"robot_xy": (0, 0), "robot_yaw": heading, "goal_xy": (goal_x, 0.0), **parked}
+        plain, _ = front.reset(seed=0, options=options)
+        pair, _ = both.reset(seed=0, options=options)
+        assert pair.shape == (64, 128, 3) and pair.dtype == np.uint8
+        np.testing.assert_array_equal(pair[:, :64], plain)  # the front half is the usual frame
+        halves = {"front": green_pixels(pair[:, :64]), "back": green_pixels(pair[:, 64:])}
+        assert halves[seen_in] > 20 and min(halves.values()) == 0, halves
+    with pytest.raises(ValueError, match="back_camera"):
+        make_env(robot, "Goal", 1, back_camera="yes")
+
+
 def test_render_modes():
     env = gym.make("SafetyGym/CarGoal1-v0", render_mode="rgb_array", render_width=96, render_height=80)
     obs, _ = env.reset(seed=0)
