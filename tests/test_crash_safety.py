@@ -139,7 +139,10 @@ def assert_every_file_whole(run_dir: Path) -> None:
 
 
 def rows_up_to(run_dir: Path, timesteps: int) -> pd.DataFrame:
-    progress = pd.read_csv(run_dir / "progress.csv")
+    path = run_dir / "progress.csv"
+    if not path.is_file() or not path.stat().st_size:  # killed before its first row (a checkpoint can come first)
+        return pd.DataFrame()
+    progress = pd.read_csv(path)
     return progress[progress["time/total_timesteps"] <= timesteps].reset_index(drop=True)
 
 
@@ -241,13 +244,15 @@ def replaced(path: Path) -> Callable[[], bool]:
     return lambda: path.stat().st_ino != inode
 
 
-def test_a_run_killed_at_random_moments_resumes(runner: Runner, tmp_path: Path) -> None:
+@pytest.mark.parametrize("at_once", [True, False])
+def test_a_run_killed_at_random_moments_resumes(runner: Runner, tmp_path: Path, at_once: bool) -> None:
     """
     Killed a random while after its first complete checkpoint, then again a random while after its resume began to
     train (its progress.csv rewritten), then resumed to the end. At these sizes a checkpoint is written every 0.1 s or so.
+    ``at_once``: both kills as soon as they may come, the first before any row of progress.csv is written.
     """
     run_dir = tmp_path / "run"
-    waits = [random.uniform(0.0, 1.5), random.uniform(0.0, 1.0)]
+    waits = [0.0, 0.0] if at_once else [random.uniform(0.0, 1.5), random.uniform(0.0, 1.0)]
     kept_rows, kept_evaluations, resumed_from = pd.DataFrame(), {}, 0
     for stage in range(2):
         if stage == 0:
