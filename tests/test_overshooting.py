@@ -1,4 +1,5 @@
-"""Latent overshooting (``latent_overshooting``): z1's KL to its prior rolled open-loop several steps."""
+"""Latent overshooting (``latent_overshooting``): z1's KL to its prior rolled open-loop several steps, and the reward on
+those rolls (``latent_reward_overshooting``)."""
 
 import pytest
 import torch as th
@@ -56,16 +57,96 @@ def reference_overshooting_kl(latent: LatentModel, z2, actions, mean, std, depth
 def test_overshooting_kl_is_the_kl_to_the_prior_rolled_open_loop(latent: LatentModel, depth: int) -> None:
     z2, actions, mean, std = rollout_inputs()
     th.manual_seed(4)
-    value = overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, depth)
+    value, transitions = overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, depth)
     th.manual_seed(4)
     expected = reference_overshooting_kl(latent, z2, actions, mean, std, depth)
     th.testing.assert_close(value, expected, rtol=1e-5, atol=1e-5)
+    assert transitions == []  # asked for with z1 only
+
+
+def reference_rolled_transitions(latent: LatentModel, z1, z2, actions, depth: int) -> list[th.Tensor]:
+    """Start by start, the transitions [z_{t+d-1}, a_{t+d-1}, z_{t+d}] rolled from the posterior's z_t, same noise order."""
+    noise = []  # per rolled step, the z1 and z2 draws of every start
+    for rolled in range(depth):
+        starts = STEPS - rolled
+        noise.append((th.randn(BATCH, starts, Z1), th.randn(BATCH, starts, Z2)))
+    per_depth = []
+    for d in range(1, depth + 1):
+        rows = []
+        for row in range(BATCH):
+            starts = []
+            for start in range(STEPS - d + 1):
+                z1_now, state = z1[row, start], z2[row, start]
+                for rolled in range(d):
+                    action = actions[row, start + rolled]
+                    prior_mean, prior_std = latent.z1_prior(state[None], action[None])
+                    z1_next = (prior_mean + prior_std * noise[rolled][0][row, start])[0]
+                    z2_mean, z2_std = latent.z2_transition(z1_next[None], state[None], action[None])
+                    previous = th.cat([z1_now, state])
+                    state = (z2_mean + z2_std * noise[rolled][1][row, start])[0]
+                    z1_now = z1_next
+                starts.append(th.cat([previous, action, z1_now, state]))
+            rows.append(th.stack(starts))
+        per_depth.append(th.stack(rows))
+    return per_depth
+
+
+def test_the_rolled_transitions_chain_open_loop_steps_from_the_posterior(latent: LatentModel) -> None:
+    z2, actions, mean, std = rollout_inputs()
+    z1 = th.randn(BATCH, STEPS + 1, Z1)
+    th.manual_seed(4)
+    plain, _ = overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, 3)
+    th.manual_seed(4)
+    value, transitions = overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, 3, z1)
+    th.testing.assert_close(value, plain)  # the transitions' extra draws come after the KL's
+    th.manual_seed(4)
+    expected = reference_rolled_transitions(latent, z1, z2, actions, 3)
+    assert [tuple(step.shape) for step in transitions] == [(BATCH, STEPS - d + 1, 2 * (Z1 + Z2) + ACTIONS) for d in (1, 2, 3)]
+    for step, reference in zip(transitions, expected, strict=True):
+        th.testing.assert_close(step, reference, rtol=1e-5, atol=1e-5)
+
+
+def test_reward_overshooting_adds_the_weighted_reward_likelihood_of_the_rolls(latent: LatentModel) -> None:
+    th.manual_seed(5)
+    observations = th.rand(BATCH, STEPS + 1, 3, 32, 32)
+    actions = th.rand(BATCH, STEPS, ACTIONS) * 2 - 1
+    rewards, zeros = th.randn(BATCH, STEPS), th.zeros(BATCH, STEPS)
+    noise = (th.randn(STEPS + 1, BATCH, Z1), th.randn(STEPS + 1, BATCH, Z2))
+    latent.overshooting_depth = 3
+    th.manual_seed(6)
+    total, terms, _ = latent.loss_and_filter(observations, actions, rewards, zeros, zeros, noise=noise)
+    assert "overshooting_reward_loss" not in terms
+    losses = {}
+    for weight in (1.0, 3.0):
+        latent.reward_overshooting_weight = weight
+        th.manual_seed(6)
+        losses[weight] = latent.loss_and_filter(observations, actions, rewards, zeros, zeros, noise=noise)
+    weighted_total, weighted_terms, _ = losses[1.0]
+    for key in ("kl", "overshooting_kl", "image_loss", "reward_loss", "cost_loss"):
+        th.testing.assert_close(weighted_terms[key], terms[key])
+    th.testing.assert_close(weighted_total, total + weighted_terms["overshooting_reward_loss"])
+    th.testing.assert_close(losses[3.0][1]["overshooting_reward_loss"], 3.0 * weighted_terms["overshooting_reward_loss"])
+    latent.zero_grad()
+    (weighted_total - total.detach()).backward()  # the term's own gradient (the rest is the same graph's)
+    assert all(param.grad is not None and param.grad.abs().sum() > 0 for param in latent.reward_decoder.parameters())
+    assert any(param.grad is not None and param.grad.abs().sum() > 0 for param in latent.z2_transition.parameters())
+
+
+def test_reward_overshooting_needs_a_roll() -> None:
+    with pytest.raises(ValueError, match=r"latent_reward_overshooting=0.5 .* needs latent_overshooting >= 2, got 1"):
+        small_model(HazardPointEnv(), policy_kwargs={**SMALL_POLICY, "latent_reward_overshooting": 0.5})
+    refused = "reward_overshooting_weight must be 0, or positive with overshooting_depth >= 2"
+    with pytest.raises(ValueError, match=rf"{refused} .* got -1 with overshooting_depth=2"):
+        policy_kwargs = {**SMALL_POLICY, "latent_overshooting": 2, "latent_reward_overshooting": -1}
+        small_model(HazardPointEnv(), policy_kwargs=policy_kwargs)
+    with pytest.raises(ValueError, match=rf"{refused} .* got 1.0 with overshooting_depth=1"):
+        LatentModel((4,), ACTIONS, reward_overshooting_weight=1.0)
 
 
 def test_overshooting_trains_the_prior_and_the_belief_not_the_posterior(latent: LatentModel) -> None:
     """PlaNet holds the posterior fixed: the gradient reaches z2 (what the belief holds) and the prior, not z1's posterior."""
     z2, actions, mean, std = rollout_inputs()
-    overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, 3).backward()
+    overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, 3)[0].backward()
     assert mean.grad is None
     assert z2.grad is not None and z2.grad[:, :-1].abs().sum() > 0
     assert th.all(z2.grad[:, -1] == 0)  # the last frame starts no roll
@@ -89,13 +170,14 @@ def test_depth_one_is_the_thesis_loss_and_deeper_adds_the_term(latent: LatentMod
     th.testing.assert_close(deeper, total + deeper_terms["overshooting_kl"])
 
 
-def test_a_model_with_overshooting_learns_and_logs_the_term(tmp_path) -> None:
-    model = small_model(HazardPointEnv(obs_type="pixels"), policy_kwargs={**SMALL_POLICY, "latent_overshooting": 3})
-    assert model.policy.latent.overshooting_depth == 3
+def test_a_model_with_overshooting_learns_and_logs_the_terms(tmp_path) -> None:
+    policy_kwargs = {**SMALL_POLICY, "latent_overshooting": 3, "latent_reward_overshooting": 1.0}
+    model = small_model(HazardPointEnv(obs_type="pixels"), policy_kwargs=policy_kwargs)
+    assert model.policy.latent.overshooting_depth == 3 and model.policy.latent.reward_overshooting_weight == 1.0
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(100, log_interval=1)
     logged = (tmp_path / "progress.csv").read_text().splitlines()[0].split(",")
-    assert "train/overshooting_kl" in logged
+    assert "train/overshooting_kl" in logged and "train/overshooting_reward_loss" in logged
     assert all(th.isfinite(param).all() for param in model.policy.parameters())
 
 

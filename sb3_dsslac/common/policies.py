@@ -69,6 +69,9 @@ class LatentPolicy(BasePolicy):
         (``LatentModel``'s ``kl_balance``; 0.8 in LAMBDA)
     :param latent_overshooting: the longest open-loop roll of z1's prior in the latent loss (``LatentModel``'s
         ``overshooting_depth``): 1, the thesis's, the one-step KL alone; up to ``sequence_length``
+    :param latent_reward_overshooting: the weight of the reward likelihood on the overshooting's open-loop rolls
+        (``LatentModel``'s ``reward_overshooting_weight``): 0, the thesis's, none; positive needs ``latent_overshooting
+        >= 2``. The reward of each rolled step depends on where the goal is, seen or not
     :param latent_recurrence: how z2 follows from the previous step: "gaussian" (the thesis's: a Gaussian MLP of
         ``[z1_{t+1}, z2_t, a_t]``, noise at every step) or "gru" (a deterministic GRU state, as in an RSSM:
         ``RecurrentLatentModel``), which can hold what left the view
@@ -119,6 +122,7 @@ class LatentPolicy(BasePolicy):
         latent_mean_bound: float | None = None,
         latent_kl_balance: float | None = None,
         latent_overshooting: int = 1,
+        latent_reward_overshooting: float = 0.0,
         latent_recurrence: str = "gaussian",
         latent_learning_rate: float = 1e-4,
         previous_action_input: bool = False,
@@ -158,6 +162,7 @@ class LatentPolicy(BasePolicy):
         self.latent_mean_bound = latent_mean_bound
         self.latent_kl_balance = latent_kl_balance
         self.latent_overshooting = latent_overshooting
+        self.latent_reward_overshooting = latent_reward_overshooting
         if latent_recurrence not in LATENT_MODELS:
             raise ValueError(f"latent_recurrence must be one of {sorted(LATENT_MODELS)}, got {latent_recurrence!r}")
         self.latent_recurrence = latent_recurrence
@@ -193,6 +198,7 @@ class LatentPolicy(BasePolicy):
             mean_bound=self.latent_mean_bound,
             kl_balance=self.latent_kl_balance,
             overshooting_depth=self.latent_overshooting,
+            reward_overshooting_weight=self.latent_reward_overshooting,
         )
         state_dim = self.latent.z_dim + (self.action_dim if self.previous_action_input else 0)
         self.actor = LatentActor(state_dim, self.action_dim, self.hidden_units)
@@ -243,6 +249,7 @@ class LatentPolicy(BasePolicy):
                 latent_mean_bound=self.latent_mean_bound,
                 latent_kl_balance=self.latent_kl_balance,
                 latent_overshooting=self.latent_overshooting,
+                latent_reward_overshooting=self.latent_reward_overshooting,
                 latent_recurrence=self.latent_recurrence,
                 latent_learning_rate=self.latent_learning_rate,
                 previous_action_input=self.previous_action_input,

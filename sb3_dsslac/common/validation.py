@@ -161,6 +161,7 @@ RANGES: dict[str, Check] = {
     "latent_mean_bound": _POSITIVE,
     "latent_kl_balance": _numbers(0, 1),
     "latent_overshooting": _AT_LEAST_ONE,
+    "latent_reward_overshooting": _NON_NEGATIVE,
     "latent_recurrence": _words(*LATENT_MODELS),
 }
 
@@ -249,7 +250,8 @@ def check_related_arguments(arguments: Mapping[str, Any]) -> None:
     The ranges of ``DSSLAC``'s keywords that depend on another: ``actor_critic_transitions`` (at most ``sequence_length``,
     one fewer with the policy's ``previous_action_input``: a window's first frame has no previous action in it),
     ``stored_beliefs`` (a burn-in to start), ``belief_refresh_interval`` (stored beliefs), the policy's
-    ``latent_overshooting`` (a roll inside the window) and ``cost_target``.
+    ``latent_overshooting`` (a roll inside the window) and ``latent_reward_overshooting`` (on such rolls), and
+    ``cost_target``.
     """
     transitions, length = arguments["actor_critic_transitions"], arguments["sequence_length"]
     most, range_text = length, f"[1, sequence_length={length}]"
@@ -274,6 +276,12 @@ def check_related_arguments(arguments: Mapping[str, Any]) -> None:
         raise ValueError(
             f"policy_kwargs latent_overshooting rolls z1's prior up to that many steps inside a window of sequence_length="
             f"{length} transitions: it must be in [1, {length}], got {depth}"
+        )
+    reward_weight = (arguments["policy_kwargs"] or {}).get("latent_reward_overshooting", 0.0)
+    if isinstance(reward_weight, (int, float)) and reward_weight > 0 and isinstance(depth, int) and depth < 2:
+        raise ValueError(
+            f"policy_kwargs latent_reward_overshooting={reward_weight} weighs the reward on the latent overshooting's "
+            f"open-loop rolls: it needs latent_overshooting >= 2, got {depth}"
         )
     target, limit = arguments["cost_target"], arguments["cost_limit"]
     if target is not None and not 0.0 <= target <= limit:

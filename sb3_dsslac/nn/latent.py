@@ -184,6 +184,10 @@ class LatentModel(nn.Module):
         ``d = 2 .. D`` of the KL to its prior rolled ``d`` steps open-loop (``overshooting_kl``, PlaNet's latent
         overshooting), so that the belief must hold what the next D frames will show; D is at most a window's
         transitions
+    :param reward_overshooting_weight: 0 (the thesis's) or the weight of the reward's Gaussian likelihood on the
+        transitions rolled open-loop ``d = 1 .. D`` steps by the overshooting (mean over d of each depth's sum over the
+        window's starts, mean over the batch), so that the belief must hold what the rewards of the next D steps
+        depend on, such as where the goal went (``overshooting_kl``); needs ``overshooting_depth >= 2``
     :param encoder_class: the encoder in place of the built-in one (None): ``encoder_class(observation_shape,
         feature_dim, **encoder_kwargs)`` must map observations (N, *observation_shape) to (N, feature_dim) or
         (N, feature_dim, 1, 1), checked on two zero observations here. It keeps its own initialisation
@@ -215,6 +219,7 @@ class LatentModel(nn.Module):
         mean_bound: float | None = None,
         kl_balance: float | None = None,
         overshooting_depth: int = 1,
+        reward_overshooting_weight: float = 0.0,
         encoder_class: type[nn.Module] | None = None,
         encoder_kwargs: dict[str, Any] | None = None,
         decoder_class: type[nn.Module] | None = None,
@@ -227,6 +232,12 @@ class LatentModel(nn.Module):
         if overshooting_depth < 1:
             raise ValueError(f"overshooting_depth must be at least 1 (1: the one-step KL alone), got {overshooting_depth}")
         self.overshooting_depth = overshooting_depth
+        if reward_overshooting_weight < 0 or (reward_overshooting_weight > 0 and overshooting_depth < 2):
+            raise ValueError(
+                f"reward_overshooting_weight must be 0, or positive with overshooting_depth >= 2 (the rolled transitions it "
+                f"weighs), got {reward_overshooting_weight} with overshooting_depth={overshooting_depth}"
+            )
+        self.reward_overshooting_weight = reward_overshooting_weight
         self.hidden_units = tuple(hidden_units)
         self.image_channels = tuple(int(width) for width in image_channels)
         if len(self.image_channels) != 4 or min(self.image_channels) < 1:
@@ -544,10 +555,11 @@ class LatentModel(nn.Module):
             prior_std = torch.cat([first_std.unsqueeze(1), prior_std], dim=1)
         kl = self._kl(z1_mean, z1_std, prior_mean, prior_std)
         terms = {"kl": kl}
+        rolled_transitions: list[Tensor] = []
         if self.overshooting_depth > 1:
-            z2 = z[..., self.z1_dim :]
-            terms["overshooting_kl"] = overshooting_kl(
-                self.z1_prior, self.z2_transition, z2, actions, z1_mean, z1_std, self.overshooting_depth
+            z1 = z[..., : self.z1_dim] if self.reward_overshooting_weight > 0 else None
+            terms["overshooting_kl"], rolled_transitions = overshooting_kl(
+                self.z1_prior, self.z2_transition, z[..., self.z1_dim :], actions, z1_mean, z1_std, self.overshooting_depth, z1
             )
 
         reconstruction = self.decode(z)
@@ -558,6 +570,10 @@ class LatentModel(nn.Module):
         reward_mean, reward_std = self.reward_decoder(transitions)
         reward_nll = gaussian_nll(rewards, reward_mean.view_as(rewards), reward_std.view_as(rewards))
         reward_loss = self.reward_loss_weight * (reward_nll * (1.0 - terminated)).sum(dim=1).mean()
+        if rolled_transitions:
+            terms["overshooting_reward_loss"] = self.reward_overshooting_weight * self._rolled_reward_nll(
+                rolled_transitions, rewards, terminated
+            )
 
         # log(p + 1e-6) and log(1 - p + 1e-6) from the logit without cancellation: logaddexp(log p, log 1e-6).
         logits = self.cost_decoder(transitions).view_as(costs)
@@ -570,6 +586,8 @@ class LatentModel(nn.Module):
         total = kl + image_loss + reward_loss + cost_loss
         if self.overshooting_depth > 1:
             total = total + terms["overshooting_kl"]
+        if rolled_transitions:
+            total = total + terms["overshooting_reward_loss"]
         terms.update(image_loss=image_loss, reward_loss=reward_loss, cost_loss=cost_loss)
         with torch.no_grad():  # computed without gradient, nothing to detach
             extremes = {
@@ -579,6 +597,23 @@ class LatentModel(nn.Module):
                 "reconstruction_abs_max": reconstruction.abs().amax(),
             }
         return total, {**{key: value.detach() for key, value in terms.items()}, **extremes}, other_z
+
+    def _rolled_reward_nll(self, rolled_transitions: list[Tensor], rewards: Tensor, terminated: Tensor) -> Tensor:
+        """
+        Mean over the depths of the reward decoder's NLL of the rewards, summed over the starts (terminal transitions
+        masked), mean over the batch.
+
+        :param rolled_transitions: per depth d = 1 .. D, (B, T-d+1, transition_dim) rolled from every start t
+        :param rewards: (B, T) reward of transition t -> t+1; the roll's depth-d transition from t is t+d-1 -> t+d
+        :param terminated: (B, T)
+        """
+        per_depth = []
+        for rolled, transitions in enumerate(rolled_transitions):
+            target = slice(rolled, rolled + transitions.shape[1])
+            mean, std = self.reward_decoder(transitions)
+            nll = gaussian_nll(rewards[:, target], mean.squeeze(-1), std.squeeze(-1))
+            per_depth.append((nll * (1.0 - terminated[:, target])).sum(dim=1).mean())
+        return torch.stack(per_depth).mean()
 
     def sample_latents(self, observations: Tensor, actions: Tensor, start: LatentStart | None = None) -> Tensor:
         """

@@ -7,6 +7,11 @@ needs what the current frame shows: nothing asks the belief to keep what left th
 the goal's bearing for 3-8 steps, ``benchmarks/goal_memory.py``). Rolled open-loop from ``z2_t`` over the actions, the
 prior of ``z1_{t+d}`` can match the posterior of a frame in which the goal comes back only if ``z2_t`` knew where it
 went.
+
+The rolled states can also carry the reward decoder (``LatentModel``'s ``reward_overshooting_weight``; PlaNet trains
+its reward on overshooting too): the reward of every step, not only of the rare frame in which the goal comes back,
+depends on where the goal is, so predicting it several steps without frames asks ``z2_t`` for the goal's bearing at
+each of them.
 """
 
 import torch
@@ -23,7 +28,8 @@ def overshooting_kl(
     posterior_mean: Tensor,
     posterior_std: Tensor,
     depth: int,
-) -> Tensor:
+    z1: Tensor | None = None,
+) -> tuple[Tensor, list[Tensor]]:
     """
     Mean over ``d = 2 .. depth`` of ``KL(sg(q(z1_{t+d})) || p_d(z1_{t+d} | z2_t, a_t .. a_{t+d-1}))``, each summed over
     the window's starts ``t`` and z1, mean over the batch: the prior is rolled ``d`` steps from the posterior's ``z2_t``
@@ -36,13 +42,18 @@ def overshooting_kl(
     :param posterior_mean: (B, T+1, Z1) z1's posterior means
     :param posterior_std: (B, T+1, Z1) z1's posterior stds
     :param depth: the longest open-loop roll, 2 <= depth <= T
-    :return: the scalar term
+    :param z1: (B, T+1, Z1) the posterior rollout's z1 samples to also return the rolled transitions (one more sampled
+        step after the KL's draws), or None
+    :return: the scalar term, and with ``z1`` the rolled transitions of ``d = 1 .. depth``: ``[z_{t+d-1}, a_{t+d-1},
+        z_{t+d}]`` (B, T-d+1, 2 (Z1 + Z2) + A) with ``z = [z1, z2]`` rolled open-loop from the posterior's ``z_t`` (itself
+        at d = 1), for every start t = 0 .. T-d; without ``z1`` an empty list
     """
     steps = actions.shape[1]
     if not 2 <= depth <= steps:
         raise ValueError(f"overshooting depth must be in [2, {steps}] (the window's transitions), got {depth}")
     state = z2[:, :-1]  # (B, T, Z2): the roll from every start t = 0 .. T-1
-    terms = []
+    previous = None if z1 is None else torch.cat([z1[:, :-1], state], dim=-1)  # z_{t+rolled} of every start
+    terms, transitions = [], []
     for rolled in range(depth):
         starts = steps - rolled  # the starts whose roll stays inside the window
         state = state[:, :starts]
@@ -52,8 +63,12 @@ def overshooting_kl(
             target = slice(rolled + 1, rolled + 1 + starts)
             kl = gaussian_kl(posterior_mean[:, target].detach(), posterior_std[:, target].detach(), prior_mean, prior_std)
             terms.append(kl.sum(dim=(1, 2)).mean())
-        if rolled + 1 < depth:
-            z1 = torch.addcmul(prior_mean, prior_std, torch.randn_like(prior_mean))
-            z2_mean, z2_std = z2_transition(z1, state, action)
+        if rolled + 1 < depth or previous is not None:
+            rolled_z1 = torch.addcmul(prior_mean, prior_std, torch.randn_like(prior_mean))
+            z2_mean, z2_std = z2_transition(rolled_z1, state, action)
             state = torch.addcmul(z2_mean, z2_std, torch.randn_like(z2_mean))
-    return torch.stack(terms).mean()
+            if previous is not None:
+                current = torch.cat([rolled_z1, state], dim=-1)
+                transitions.append(torch.cat([previous[:, :starts], action, current], dim=-1))
+                previous = current
+    return torch.stack(terms).mean(), transitions
