@@ -5,6 +5,8 @@ run on its means beside the sampled one the agent acts on, as ``tools/diagnostic
 previous action, the goal's bearing from the robot's heading (from the simulator: the angle of the goal's centre in the
 horizontal plane from the direction the robot's camera looks, counter-clockwise positive) and whether the goal's centre
 is inside the camera's horizontal field of view (``goal_view.goal_in_fov``), with the agent steps since it last was.
+With an actor-critic memory (``LatentPolicy(actor_critic_memory=H)``) the recorded belief carries the memory the agent
+acts on beside it: what the actor and critics can read the goal from.
 The count starts afresh when a goal is reached: the steps before the new goal is first in view are in no row below.
 
 A linear ridge probe from the belief to (cos, sin) of the bearing is fitted on half the episodes (even-indexed) and
@@ -143,7 +145,7 @@ def goal_episode(model: DSSLAC, env: gym.Env, seed: int, deterministic: bool = F
     policy.set_training_mode(False)
     beliefs, previous_actions, bearings, in_fov, new_goal = [], [], [], [], []
     reward = cost = 0.0
-    acting_z2, action = policy.initial_state(1)
+    acting_z2, action, memory = policy.initial_state(1)
     mean_z2 = acting_z2.clone()
     start = th.ones(1, dtype=th.bool)
     observation, info = env.reset(seed=seed)
@@ -155,13 +157,14 @@ def goal_episode(model: DSSLAC, env: gym.Env, seed: int, deterministic: bool = F
             feature = latent.encode(policy.preprocess(image).unsqueeze(1)).squeeze(1)  # type: ignore[arg-type]
             z1, acting_z2 = latent.filter_step(feature, acting_z2, action, start, deterministic)
             mean_z1, mean_z2 = latent.filter_step(feature, mean_z2, action, start, deterministic=True)
-            beliefs.append(th.cat([mean_z1, mean_z2], dim=-1)[0].numpy())
+            z = th.cat([z1, acting_z2], dim=-1)
+            actor_input, memory = policy.acting_input(z, action, memory, start)
+            beliefs.append(th.cat([mean_z1, mean_z2, memory], dim=-1)[0].numpy())
             previous_actions.append(action[0].numpy())
             bearings.append(goal_bearing(env))
             in_fov.append(goal_in_fov(env))
             new_goal.append(placed)
-            z = th.cat([z1, acting_z2], dim=-1)
-            action = policy.actor(policy.actor_critic_input(z, action, start), deterministic=deterministic)
+            action = policy.actor(actor_input, deterministic=deterministic)
             observation, step_reward, terminated, truncated, info = env.step(policy.unscale_action(action.numpy())[0])
             reward, cost = reward + float(step_reward), cost + cost_from_info(info)
             placed, done = bool(info.get("goal_met", False)), terminated or truncated

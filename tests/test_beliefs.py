@@ -43,7 +43,7 @@ def test_reconstructions_and_cost_probabilities_come_from_the_latent_model(pixel
     policy = pixel_model.policy
     # Re-filter the recorded frames with the recorded actions: the first two beliefs give the first probability
     frames = th.as_tensor(beliefs.frames[:2]).permute(0, 3, 1, 2)
-    z2, action = policy.initial_state(1)
+    z2, action, _ = policy.initial_state(1)
     with th.no_grad():
         z0, z2 = policy.belief_step(frames[:1], z2, action, th.ones(1, dtype=th.bool), True)
         action = policy.actor(z0, deterministic=True)

@@ -186,19 +186,25 @@ LATENT_STATISTICS = {
     [
         {},
         {
-            "policy_kwargs": {"latent_recurrence": "gru", "latent_overshooting": 2, "latent_reward_overshooting": 1.0},
+            "policy_kwargs": {
+                "latent_recurrence": "gru",
+                "latent_overshooting": 2,
+                "latent_reward_overshooting": 1.0,
+                "actor_critic_memory": 8,
+            },
+            "actor_critic_transitions": 2,
             "burn_in": 2,
             "stored_beliefs": True,
         },
     ],
-    ids=["thesis_update", "gru_stored_beliefs_overshooting"],
+    ids=["thesis_update", "gru_stored_beliefs_overshooting_memory"],
 )
 def test_compiled_update_matches_eager(monkeypatch, recurrent_memory: dict) -> None:
     # Minutes on 2 cores with a cold Inductor cache (17 s with a warm one): torch.compile builds the whole gradient step
     # and the burst's last actor-critic step with Inductor's C++ kernels, whatever the networks' sizes. The cpu_pixels
     # presets' narrow first layer, channels-last (as on an x86 CPU), whatever this CPU; and the same with the GRU latent
     # and a burn-in from stored beliefs and latent overshooting of z1 and the reward (cpu_pixels32_gru_stored's memory and
-    # its objectives)
+    # its objectives, with an actor-critic memory over two learned transitions)
     monkeypatch.setattr(latent_module, "channels_last_is_faster", lambda widths, device: True)
     keywords = dict(recurrent_memory)
     policy_kwargs = {"image_channels": (8, 8, 16, 16), **keywords.pop("policy_kwargs", {})}

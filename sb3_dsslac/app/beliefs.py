@@ -54,7 +54,7 @@ def episode_beliefs(
     frames, reconstructions, transitions, costs, rewards = [], [], [], [], []
     try:
         observation, _ = env.reset(seed=seed)
-        z2, action = policy.initial_state(1)
+        z2, action, memory = policy.initial_state(1)
         start = th.ones(1, dtype=th.bool, device=policy.device)
         done, steps = False, 0
         with th.inference_mode():
@@ -67,7 +67,8 @@ def episode_beliefs(
                     transitions[-1].append(z)
                 if done or (max_steps is not None and steps == max_steps):
                     break
-                action = policy.actor(policy.actor_critic_input(z, action, start), deterministic=deterministic)
+                actor_input, memory = policy.acting_input(z, action, memory, start)
+                action = policy.actor(actor_input, deterministic=deterministic)
                 transitions.append([z, action])
                 env_action = policy.unscale_action(action.cpu().numpy()).reshape(env.action_space.shape)
                 observation, reward, terminated, truncated, info = env.step(env_action)

@@ -34,7 +34,7 @@ class FilteredRollouts(OffPolicyAlgorithm):
     action_repeat: int
     total_cost: float
     ep_cost_buffer: deque[float]
-    _last_filter_state: tuple[th.Tensor, th.Tensor] | None
+    _last_filter_state: tuple[th.Tensor, th.Tensor, th.Tensor] | None
     _episode_costs: np.ndarray
 
     def _init_rollout_state(self) -> None:
@@ -79,13 +79,14 @@ class FilteredRollouts(OffPolicyAlgorithm):
         episode_start = th.as_tensor(self._last_episode_starts, dtype=th.bool, device=self.device)
         self.policy.set_training_mode(False)
         with th.inference_mode():
-            z2_prev, action_prev = self._last_filter_state
+            z2_prev, action_prev, memory_prev = self._last_filter_state
             z, z2 = self.policy.belief_step(observation, z2_prev, action_prev, episode_start, deterministic=False)
+            actor_input, memory = self.policy.acting_input(z, action_prev, memory_prev, episode_start)
             if self.num_timesteps < learning_starts:
                 scaled_action = th.tanh(2.0 * th.randn(n_envs, self.policy.action_dim, device=self.device))
             else:
-                scaled_action = self.policy.actor(self.policy.actor_critic_input(z, action_prev, episode_start))
-        self._last_filter_state = (z2, scaled_action)
+                scaled_action = self.policy.actor(actor_input)
+        self._last_filter_state = (z2, scaled_action, memory)
         buffer_action = scaled_action.cpu().numpy()
         raise_if_action_not_finite(buffer_action, self.num_timesteps, self._n_updates)
         return self.policy.unscale_action(buffer_action), buffer_action

@@ -14,11 +14,14 @@ from sb3_dsslac.common.env_info import check_observations_finite
 from sb3_dsslac.nn.actor import LatentActor
 from sb3_dsslac.nn.critics import IQNCostCritic, MeanCostCritic, TwinQCritic
 from sb3_dsslac.nn.latent import STD_EPS, THESIS_IMAGE_CHANNELS, LatentModel
+from sb3_dsslac.nn.memory import BeliefMemory
 from sb3_dsslac.nn.optim import fast_adam_kwargs
 from sb3_dsslac.nn.recurrent_latent import RecurrentLatentModel
 
-# Filter state carried through ``predict``: (z2 (n_envs, z2_dim), previous action scaled to [-1, 1] (n_envs, action_dim))
-FilterState = tuple[np.ndarray, np.ndarray]
+# Filter state carried through ``predict``: (z2 (n_envs, z2_dim), previous action scaled to [-1, 1] (n_envs, action_dim),
+# the actor-critic memory (n_envs, actor_critic_memory), 0 wide without one). A state of the first two alone is taken
+# for a policy without a memory
+FilterState = tuple[np.ndarray, ...]
 
 
 # The latent model of each ``latent_recurrence``
@@ -79,6 +82,10 @@ class LatentPolicy(BasePolicy):
     :param previous_action_input: the actor and both critics take the previous action beside the belief, ``[z_t,
         a_{t-1}]`` (zero at an episode's first step), instead of ``z_t`` alone (the thesis's). The belief holds what the
         last few frames show; when they show nothing to steer by, the previous action says which way the agent turned
+    :param actor_critic_memory: size of a recurrent memory over the beliefs (``BeliefMemory``) that the actor and both
+        critics take beside them, trained by the reward critic's TD error; 0 (the thesis's): none. In the update it
+        runs over each window from zero, so the learned transitions should leave it a few frames of the window before
+        them (``DSSLAC``'s ``actor_critic_transitions`` below ``sequence_length``)
     :param normalize_images: divide uint8 images by 255
     :param normalize_vectors: standardise vector observations with the mean and std of the warm-up data (set once by
         ``set_observation_statistics``; saved with the policy). Without it, the fixed-variance likelihood lets large
@@ -89,6 +96,7 @@ class LatentPolicy(BasePolicy):
     """
 
     latent: LatentModel
+    memory: BeliefMemory | None
     actor: LatentActor
     critic: TwinQCritic
     critic_target: TwinQCritic
@@ -126,6 +134,7 @@ class LatentPolicy(BasePolicy):
         latent_recurrence: str = "gaussian",
         latent_learning_rate: float = 1e-4,
         previous_action_input: bool = False,
+        actor_critic_memory: int = 0,
         normalize_images: bool = True,
         normalize_vectors: bool = True,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
@@ -168,6 +177,7 @@ class LatentPolicy(BasePolicy):
         self.latent_recurrence = latent_recurrence
         self.latent_learning_rate = latent_learning_rate
         self.previous_action_input = previous_action_input
+        self.actor_critic_memory = actor_critic_memory
         self.normalize_vectors = normalize_vectors
         self._scale_images = normalize_images and is_image_space(observation_space)
         vector_shape = self.observation_space.shape if len(self.observation_space.shape) == 1 else (0,)  # type: ignore[arg-type]
@@ -200,7 +210,10 @@ class LatentPolicy(BasePolicy):
             overshooting_depth=self.latent_overshooting,
             reward_overshooting_weight=self.latent_reward_overshooting,
         )
-        state_dim = self.latent.z_dim + (self.action_dim if self.previous_action_input else 0)
+        state_dim = self.latent.z_dim + (self.action_dim if self.previous_action_input else 0) + self.actor_critic_memory
+        self.memory = None
+        if self.actor_critic_memory > 0:
+            self.memory = BeliefMemory(self.latent.z_dim, self.action_dim, self.actor_critic_memory)
         self.actor = LatentActor(state_dim, self.action_dim, self.hidden_units)
         self.critic = TwinQCritic(state_dim, self.action_dim, self.hidden_units)
         self.critic_target = TwinQCritic(state_dim, self.action_dim, self.hidden_units)
@@ -215,7 +228,9 @@ class LatentPolicy(BasePolicy):
         latent_lr = self.latent_learning_rate
         self.latent_optimizer = self.optimizer_class(self.latent.parameters(), lr=latent_lr, **optimizer_kwargs)
         self.actor_optimizer = self.optimizer_class(self.actor.parameters(), lr=lr_schedule(1), **optimizer_kwargs)
-        self.critic_optimizer = self.optimizer_class(self.critic.parameters(), lr=lr_schedule(1), **optimizer_kwargs)
+        # The memory learns from the reward critic's TD error, with its optimizer
+        critic_params = [*self.critic.parameters(), *(self.memory.parameters() if self.memory is not None else ())]
+        self.critic_optimizer = self.optimizer_class(critic_params, lr=lr_schedule(1), **optimizer_kwargs)
         self.cost_critic_optimizer = self.optimizer_class(self.cost_critic.parameters(), lr=lr_schedule(1), **optimizer_kwargs)
 
     def _make_cost_critic(self, z_dim: int, action_dim: int) -> IQNCostCritic | MeanCostCritic:
@@ -253,6 +268,7 @@ class LatentPolicy(BasePolicy):
                 latent_recurrence=self.latent_recurrence,
                 latent_learning_rate=self.latent_learning_rate,
                 previous_action_input=self.previous_action_input,
+                actor_critic_memory=self.actor_critic_memory,
                 normalize_vectors=self.normalize_vectors,
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,
@@ -283,9 +299,11 @@ class LatentPolicy(BasePolicy):
         self.observation_mean.copy_(values.mean(dim=0))
         self.observation_std.copy_(values.std(dim=0).clamp(min=min_std))
 
-    def initial_state(self, n_envs: int) -> tuple[th.Tensor, th.Tensor]:
-        """Zero filter state (z2, previous action) for ``n_envs`` envs, on the policy's device."""
-        return th.zeros(n_envs, self.z2_dim, device=self.device), th.zeros(n_envs, self.action_dim, device=self.device)
+    def initial_state(self, n_envs: int) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """Zero filter state (z2, previous action, actor-critic memory) for ``n_envs`` envs, on the policy's device."""
+        sizes = (self.z2_dim, self.action_dim, self.actor_critic_memory)
+        z2, action_prev, memory = (th.zeros(n_envs, size, device=self.device) for size in sizes)
+        return z2, action_prev, memory
 
     def belief_step(
         self, observation: th.Tensor, z2_prev: th.Tensor, action_prev: th.Tensor, episode_start: th.Tensor, deterministic: bool
@@ -304,29 +322,69 @@ class LatentPolicy(BasePolicy):
         z1, z2 = self.latent.filter_step(feature, z2_prev, action_prev, episode_start, deterministic)
         return th.cat([z1, z2], dim=-1), z2
 
-    def actor_critic_input(self, z: th.Tensor, action_prev: th.Tensor, episode_start: th.Tensor | None = None) -> th.Tensor:
+    def actor_critic_input(
+        self, z: th.Tensor, action_prev: th.Tensor, episode_start: th.Tensor | None = None, memory: th.Tensor | None = None
+    ) -> th.Tensor:
         """
-        What the actor and the critics take: the belief, and with ``previous_action_input`` the previous action.
+        What the actor and the critics take: the belief, with ``previous_action_input`` the previous action, and with
+        an ``actor_critic_memory`` the memory after the belief.
 
         :param z: beliefs (..., z_dim)
         :param action_prev: the action taken before each belief's frame, scaled to [-1, 1] (..., action_dim)
         :param episode_start: (n,) bool, True where the belief is an episode's first (its previous action counts as zero)
-        :return: ``z`` (..., z_dim), or ``[z, a_prev]`` (..., z_dim + action_dim) with ``previous_action_input``
+        :param memory: the memory after each belief (..., actor_critic_memory); needed with a memory only
+        :return: ``[z, a_prev, h]`` (..., state size), each part there if the policy takes it
         """
-        if not self.previous_action_input:
-            return z
-        if episode_start is not None:
-            action_prev = action_prev.masked_fill(episode_start.reshape(-1, 1), 0.0)
-        return th.cat([z, action_prev], dim=-1)
+        parts = [z]
+        if self.previous_action_input:
+            if episode_start is not None:
+                action_prev = action_prev.masked_fill(episode_start.reshape(-1, 1), 0.0)
+            parts.append(action_prev)
+        if self.memory is not None:
+            assert memory is not None, "a policy with an actor-critic memory takes the memory after the belief"
+            parts.append(memory)
+        return parts[0] if len(parts) == 1 else th.cat(parts, dim=-1)
+
+    def acting_input(
+        self, z: th.Tensor, action_prev: th.Tensor, memory_prev: th.Tensor, episode_start: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """
+        What the actor takes when it acts on belief ``z``, and the actor-critic memory after it (``memory_prev``
+        unchanged without one).
+
+        :param z: the beliefs of one step (n, z_dim)
+        :param action_prev: the action taken before each belief's frame (n, action_dim)
+        :param memory_prev: the memory before the belief (n, actor_critic_memory); where an episode starts, zero is
+        :param episode_start: (n,) bool, True where the belief is an episode's first
+        :return: the actor's input (n, state size) and the new memory (n, actor_critic_memory)
+        """
+        memory = memory_prev
+        if self.memory is not None:
+            starts = episode_start.reshape(-1, 1)
+            memory = self.memory(z, action_prev.masked_fill(starts, 0.0), memory_prev.masked_fill(starts, 0.0))
+        return self.actor_critic_input(z, action_prev, episode_start, memory), memory
+
+    def window_states(self, latents: th.Tensor, actions: th.Tensor) -> th.Tensor:
+        """
+        What the actor and the critics take at frames 1..L of windows, with ``previous_action_input`` or a memory
+        (which runs from zero before frame 1): frame 0 has no previous action in the window.
+
+        :param latents: the beliefs of the windows' frames (B, L+1, z_dim)
+        :param actions: the windows' actions (B, L, action_dim); action ``t`` leads to frame ``t + 1``
+        :return: (B, L, state size)
+        """
+        memory = None if self.memory is None else self.memory.unroll(latents[:, 1:], actions)
+        return self.actor_critic_input(latents[:, 1:], actions, memory=memory)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         """Act from a single frame, as at the first step of an episode (no history). Prefer ``predict`` with state."""
         assert isinstance(observation, th.Tensor)
         n_envs = observation.shape[0]
-        z2_prev, action_prev = self.initial_state(n_envs)
+        z2_prev, action_prev, memory_prev = self.initial_state(n_envs)
         episode_start = th.ones(n_envs, dtype=th.bool, device=self.device)
         z, _ = self.belief_step(observation, z2_prev, action_prev, episode_start, deterministic)
-        return self.actor(self.actor_critic_input(z, action_prev), deterministic=deterministic)
+        state, _ = self.acting_input(z, action_prev, memory_prev, episode_start)
+        return self.actor(state, deterministic=deterministic)
 
     def forward(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(observation, deterministic=deterministic)
@@ -360,28 +418,37 @@ class LatentPolicy(BasePolicy):
             check_observations_finite(
                 obs_tensor.cpu().numpy(), lambda row: f"predict()'s observation of env {row} of {n_envs}"
             )
-        if state is None:
-            z2_prev, action_prev = self.initial_state(n_envs)
-            starts = th.ones(n_envs, dtype=th.bool, device=self.device)
-        else:
+        z2_prev, action_prev, memory_prev = self.initial_state(n_envs)
+        starts = th.ones(n_envs, dtype=th.bool, device=self.device)
+        if state is not None:
+            if not (len(state) == 3 or (len(state) == 2 and self.memory is None)):
+                raise ValueError(
+                    f"predict()'s state is the (z2, previous action, memory) that its last call returned, got {len(state)} "
+                    "arrays"
+                )
             z2_prev = th.as_tensor(state[0], dtype=th.float32, device=self.device).reshape(n_envs, self.z2_dim)
             action_prev = th.as_tensor(state[1], dtype=th.float32, device=self.device).reshape(n_envs, -1)
+            if len(state) == 3:
+                memory_prev = th.as_tensor(state[2], dtype=th.float32, device=self.device)
+                memory_prev = memory_prev.reshape(n_envs, self.actor_critic_memory)
             flags = np.zeros(n_envs, dtype=bool) if episode_start is None else np.asarray(episode_start, dtype=bool)
             starts = th.as_tensor(flags.reshape(n_envs), device=self.device)
         with th.inference_mode():
             z, z2 = self.belief_step(obs_tensor, z2_prev, action_prev, starts, deterministic)
-            scaled_actions = self.actor(self.actor_critic_input(z, action_prev, starts), deterministic=deterministic)
+            actor_input, memory = self.acting_input(z, action_prev, memory_prev, starts)
+            scaled_actions = self.actor(actor_input, deterministic=deterministic)
         scaled = scaled_actions.cpu().numpy()
         actions = self.unscale_action(scaled).reshape((-1, *self.action_space.shape))  # type: ignore[misc]
-        new_state = (z2.cpu().numpy(), scaled)
+        new_state = (z2.cpu().numpy(), scaled, memory.cpu().numpy())
         if not vectorized_env:
             actions = actions.squeeze(axis=0)
         return actions, new_state
 
     def set_training_mode(self, mode: bool) -> None:
         """Train or eval mode for the trained networks; the target networks always stay in eval mode."""
-        for module in (self.latent, self.actor, self.critic, self.cost_critic):
-            module.train(mode)
+        for module in (self.latent, self.actor, self.critic, self.cost_critic, self.memory):
+            if module is not None:
+                module.train(mode)
         self.training = mode
 
 

@@ -163,6 +163,7 @@ RANGES: dict[str, Check] = {
     "latent_overshooting": _AT_LEAST_ONE,
     "latent_reward_overshooting": _NON_NEGATIVE,
     "latent_recurrence": _words(*LATENT_MODELS),
+    "actor_critic_memory": _NON_NEGATIVE,
 }
 
 
@@ -248,17 +249,20 @@ def check_arguments(function: Callable[..., Any], arguments: Mapping[str, Any], 
 def check_related_arguments(arguments: Mapping[str, Any]) -> None:
     """
     The ranges of ``DSSLAC``'s keywords that depend on another: ``actor_critic_transitions`` (at most ``sequence_length``,
-    one fewer with the policy's ``previous_action_input``: a window's first frame has no previous action in it),
+    one fewer with the policy's ``previous_action_input`` or ``actor_critic_memory``: a window's first frame has no
+    previous action in it),
     ``stored_beliefs`` (a burn-in to start), ``belief_refresh_interval`` (stored beliefs), the policy's
     ``latent_overshooting`` (a roll inside the window) and ``latent_reward_overshooting`` (on such rolls), and
     ``cost_target``.
     """
     transitions, length = arguments["actor_critic_transitions"], arguments["sequence_length"]
     most, range_text = length, f"[1, sequence_length={length}]"
-    if (arguments["policy_kwargs"] or {}).get("previous_action_input", False):
+    policy_kwargs = arguments["policy_kwargs"] or {}
+    takes_previous = [name for name in ("previous_action_input", "actor_critic_memory") if policy_kwargs.get(name)]
+    if takes_previous:
         most = length - 1
-        range_text = f"[1, sequence_length - 1 = {most}] with previous_action_input (a window's first frame has no previous "
-        range_text += "action in it)"
+        range_text = f"[1, sequence_length - 1 = {most}] with {' and '.join(takes_previous)} (a window's first frame has no "
+        range_text += "previous action in it)"
     if not 1 <= transitions <= most:
         raise ValueError(f"actor_critic_transitions must be in {range_text}, got {transitions}")
     if arguments.get("stored_beliefs") and arguments.get("burn_in", 0) < 1:
@@ -271,13 +275,13 @@ def check_related_arguments(arguments: Mapping[str, Any]) -> None:
             f"belief_refresh_interval={arguments['belief_refresh_interval']} re-filters the replay buffer's stored beliefs: "
             "it needs stored_beliefs=True"
         )
-    depth = (arguments["policy_kwargs"] or {}).get("latent_overshooting", 1)
+    depth = policy_kwargs.get("latent_overshooting", 1)
     if isinstance(depth, int) and depth > length:
         raise ValueError(
             f"policy_kwargs latent_overshooting rolls z1's prior up to that many steps inside a window of sequence_length="
             f"{length} transitions: it must be in [1, {length}], got {depth}"
         )
-    reward_weight = (arguments["policy_kwargs"] or {}).get("latent_reward_overshooting", 0.0)
+    reward_weight = policy_kwargs.get("latent_reward_overshooting", 0.0)
     if isinstance(reward_weight, (int, float)) and reward_weight > 0 and isinstance(depth, int) and depth < 2:
         raise ValueError(
             f"policy_kwargs latent_reward_overshooting={reward_weight} weighs the reward on the latent overshooting's "

@@ -278,18 +278,19 @@ class GradientStep:
         """
         The last ``actor_critic_transitions`` transitions of each sequence, flattened: ``z = latents[:, t]`` to
         ``z' = latents[:, t + 1]`` for the last ``k`` steps ``t`` (N = B * k, sequence-major). With the policy's
-        ``previous_action_input`` each state is ``[latents[:, t], actions[:, t - 1]]``: the window's first frame has no
-        previous action in the window, so ``k <= L - 1`` (``DSSLAC`` checks it).
+        ``previous_action_input`` each state is ``[latents[:, t], actions[:, t - 1]]``, and with its actor-critic memory
+        ``[latents[:, t], h_t]`` (the memory run from frame 1, with gradient; ``z'`` without): the window's first frame
+        has no previous action in the window, so ``k <= L - 1`` (``DSSLAC`` checks it).
 
         :param batch: the sequences (B, L+1 frames)
         :param latents: their posterior samples (B, L+1, z_dim)
         """
         k = self.config.actor_critic_transitions
-        if self.policy.previous_action_input:  # the states of frames 1..L, (B, L, z_dim + action_dim)
-            latents = self.policy.actor_critic_input(latents[:, 1:], batch.actions)
+        if self.policy.previous_action_input or self.policy.memory is not None:  # the states of frames 1..L (B, L, D)
+            latents = self.policy.window_states(latents, batch.actions)
         if k == 1:  # the thesis's: one view of each field (the general form below takes two)
             rewards, costs, terminated = (field[:, -1:] for field in (batch.rewards, batch.costs, batch.terminated))
-            return Transitions(latents[:, -2], batch.actions[:, -1], rewards, costs, terminated, latents[:, -1])
+            return Transitions(latents[:, -2], batch.actions[:, -1], rewards, costs, terminated, latents[:, -1].detach())
         z_dim = latents.shape[-1]
         return Transitions(
             latents=latents[:, -k - 1 : -1].reshape(-1, z_dim),
@@ -297,7 +298,7 @@ class GradientStep:
             rewards=batch.rewards[:, -k:].reshape(-1, 1),
             costs=batch.costs[:, -k:].reshape(-1, 1),
             terminated=batch.terminated[:, -k:].reshape(-1, 1),
-            next_latents=latents[:, -k:].reshape(-1, z_dim),
+            next_latents=latents[:, -k:].detach().reshape(-1, z_dim),
         )
 
     def actor_critic_update(self, batch: SequenceBatch, latents: th.Tensor) -> dict[str, th.Tensor]:
@@ -306,7 +307,8 @@ class GradientStep:
         ``actor_critic_transitions`` transitions of each sequence, then of the target critics.
 
         :param batch: the sequences (B, L+1 frames)
-        :param latents: their posterior samples (B, L+1, z_dim), no gradient
+        :param latents: their posterior samples (B, L+1, z_dim), no gradient (the policy's actor-critic memory over them
+            learns from the reward critic's loss)
         :return: the update's detached losses and cost estimates
         """
         policy = self.policy
@@ -325,6 +327,7 @@ class GradientStep:
         q_values = policy.critic(z, actions)  # (2, B, 1)
         critic_loss = (q_values - target_q).pow(2).mean(dim=(1, 2)).sum()  # MSE of each network, summed
         self.optimizer_step(policy.critic_optimizer, critic_loss, self.config.max_grad_norm)
+        z = z.detach()  # the memory in the states learns from the reward critic only
 
         taus = sample_taus(n, self.config.n_quantiles, self.device)
         current_quantiles = policy.cost_critic(z, actions, taus)

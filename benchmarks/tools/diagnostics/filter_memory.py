@@ -45,7 +45,7 @@ def filtered_episode(model: DSSLAC, env_id: str, seed: int, env_kwargs: dict[str
     env = make_env(env_id, "pixels", env_kwargs=env_kwargs)
     policy.set_training_mode(False)
     features, actions, beliefs = [], [], []
-    sampled_z2, action = policy.initial_state(1)
+    sampled_z2, action, memory = policy.initial_state(1)
     mean_z2 = sampled_z2.clone()
     start = th.ones(1, dtype=th.bool)
     done = False
@@ -58,7 +58,8 @@ def filtered_episode(model: DSSLAC, env_id: str, seed: int, env_kwargs: dict[str
                 feature = latent.encode(policy.preprocess(image).unsqueeze(1)).squeeze(1)  # type: ignore[arg-type]
                 z1, sampled_z2 = latent.filter_step(feature, sampled_z2, action, start)
                 mean_z1, mean_z2 = latent.filter_step(feature, mean_z2, action, start, deterministic=True)
-                action = policy.actor(policy.actor_critic_input(th.cat([z1, sampled_z2], dim=-1), action, start))
+                actor_input, memory = policy.acting_input(th.cat([z1, sampled_z2], dim=-1), action, memory, start)
+                action = policy.actor(actor_input)
                 features.append(feature[0])
                 beliefs.append(th.cat([mean_z1, mean_z2], dim=-1)[0])
                 actions.append(action[0])

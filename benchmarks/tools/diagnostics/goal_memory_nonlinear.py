@@ -37,10 +37,16 @@ def random_relu_features(beliefs: np.ndarray, n_features: int, seed: int) -> np.
 
 
 def actor_hidden(policy: LatentPolicy, beliefs: np.ndarray, previous_actions: np.ndarray, starts: np.ndarray) -> np.ndarray:
-    """The actor's last hidden layer on each belief (with the previous action where the policy takes it), (N, H)."""
+    """The actor's last hidden layer on each belief (with the previous action and the memory where the policy takes
+    them; the probe's beliefs carry the memory after z), (N, H)."""
+    z_dim = policy.latent.z_dim
     with th.no_grad():
+        beliefs_tensor = th.as_tensor(beliefs, dtype=th.float32)
         inputs = policy.actor_critic_input(
-            th.as_tensor(beliefs, dtype=th.float32), th.as_tensor(previous_actions, dtype=th.float32), th.as_tensor(starts)
+            beliefs_tensor[:, :z_dim],
+            th.as_tensor(previous_actions, dtype=th.float32),
+            th.as_tensor(starts),
+            memory=beliefs_tensor[:, z_dim:],
         )
         return policy.actor.net[:-1](inputs).double().numpy()
 

@@ -64,7 +64,7 @@ def episode_values(model: DSSLAC, env, seed: int) -> EpisodeValues:
     policy.set_training_mode(False)
     alternatives = th.as_tensor(policy.scale_action(np.array(list(ALTERNATIVES.values()), dtype=np.float32))).float()
     frame, _ = env.reset(seed=seed)
-    z2, action = policy.initial_state(1)
+    z2, action, memory = policy.initial_state(1)
     start = th.ones(1, dtype=th.bool)
     gone, values, actions, mean_actions = [], [], [], []
     since, done = 10**9, False
@@ -73,7 +73,7 @@ def episode_values(model: DSSLAC, env, seed: int) -> EpisodeValues:
         with th.inference_mode():
             observation, _ = policy.obs_to_tensor(frame)
             z, z2 = policy.belief_step(observation, z2, action, start, False)
-            state = policy.actor_critic_input(z, action, start)
+            state, memory = policy.acting_input(z, action, memory, start)
             action = policy.actor(state, deterministic=False)
             candidates = th.cat([action, alternatives])
             q_values = policy.critic(state.expand(len(candidates), -1), candidates).min(dim=0).values.squeeze(-1)
