@@ -177,6 +177,8 @@ class LatentPolicy(BasePolicy):
         self.latent_recurrence = latent_recurrence
         self.latent_learning_rate = latent_learning_rate
         self.previous_action_input = previous_action_input
+        if actor_critic_memory < 0:
+            raise ValueError(f"actor_critic_memory must be >= 0 (the memory's size; 0: none), got {actor_critic_memory}")
         self.actor_critic_memory = actor_critic_memory
         self.normalize_vectors = normalize_vectors
         self._scale_images = normalize_images and is_image_space(observation_space)
