@@ -6,7 +6,7 @@ import torch as th
 from stable_baselines3.common.logger import configure
 
 from sb3_dsslac.nn.latent import LatentModel, gaussian_kl
-from sb3_dsslac.nn.overshooting import overshooting_kl
+from sb3_dsslac.nn.overshooting import overshooting_roll
 from sb3_dsslac.nn.recurrent_latent import RecurrentLatentModel
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import SMALL_POLICY, small_model
@@ -30,7 +30,7 @@ def rollout_inputs() -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
 
 
 def reference_overshooting_kl(latent: LatentModel, z2, actions, mean, std, depth: int) -> th.Tensor:
-    """Start by start and step by step, drawing the same noise tensors as ``overshooting_kl`` in the same order."""
+    """Start by start and step by step, drawing the same noise tensors as ``overshooting_roll`` in the same order."""
     noise = []  # per rolled step: z1's (B, starts, Z1) and z2's (B * starts, Z2)
     for rolled in range(depth - 1):
         starts = STEPS - rolled
@@ -57,7 +57,7 @@ def reference_overshooting_kl(latent: LatentModel, z2, actions, mean, std, depth
 def test_overshooting_kl_is_the_kl_to_the_prior_rolled_open_loop(latent: LatentModel, depth: int) -> None:
     z2, actions, mean, std = rollout_inputs()
     th.manual_seed(4)
-    value, transitions = overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, depth)
+    value, transitions = overshooting_roll(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, depth)
     th.manual_seed(4)
     expected = reference_overshooting_kl(latent, z2, actions, mean, std, depth)
     th.testing.assert_close(value, expected, rtol=1e-5, atol=1e-5)
@@ -95,9 +95,9 @@ def test_the_rolled_transitions_chain_open_loop_steps_from_the_posterior(latent:
     z2, actions, mean, std = rollout_inputs()
     z1 = th.randn(BATCH, STEPS + 1, Z1)
     th.manual_seed(4)
-    plain, _ = overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, 3)
+    plain, _ = overshooting_roll(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, 3)
     th.manual_seed(4)
-    value, transitions = overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, 3, z1)
+    value, transitions = overshooting_roll(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, 3, z1)
     th.testing.assert_close(value, plain)  # the transitions' extra draws come after the KL's
     th.manual_seed(4)
     expected = reference_rolled_transitions(latent, z1, z2, actions, 3)
@@ -146,7 +146,7 @@ def test_reward_overshooting_needs_a_roll() -> None:
 def test_overshooting_trains_the_prior_and_the_belief_not_the_posterior(latent: LatentModel) -> None:
     """PlaNet holds the posterior fixed: the gradient reaches z2 (what the belief holds) and the prior, not z1's posterior."""
     z2, actions, mean, std = rollout_inputs()
-    overshooting_kl(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, 3)[0].backward()
+    overshooting_roll(latent.z1_prior, latent.z2_transition, z2, actions, mean, std, 3)[0].backward()
     assert mean.grad is None
     assert z2.grad is not None and z2.grad[:, :-1].abs().sum() > 0
     assert th.all(z2.grad[:, -1] == 0)  # the last frame starts no roll
@@ -187,4 +187,4 @@ def test_a_roll_beyond_the_window_or_under_one_step_is_refused() -> None:
     with pytest.raises(ValueError, match="overshooting_depth must be at least 1"):
         small_model(HazardPointEnv(), policy_kwargs={**SMALL_POLICY, "latent_overshooting": 0})
     with pytest.raises(ValueError, match="overshooting depth must be in"):
-        overshooting_kl(th.nn.Identity(), th.nn.Identity(), *rollout_inputs()[:2], *rollout_inputs()[2:], STEPS + 1)
+        overshooting_roll(th.nn.Identity(), th.nn.Identity(), *rollout_inputs()[:2], *rollout_inputs()[2:], STEPS + 1)

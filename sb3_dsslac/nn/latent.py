@@ -13,7 +13,7 @@ from sb3_dsslac.nn.fused_rollout import posterior_steps
 from sb3_dsslac.nn.gaussian import STD_EPS, GaussianBounds, gaussian_kl
 from sb3_dsslac.nn.image_nets import check_decoder, check_encoder, check_image_shape, image_decoder, image_encoder
 from sb3_dsslac.nn.numerics import autocast_enabled
-from sb3_dsslac.nn.overshooting import overshooting_kl
+from sb3_dsslac.nn.overshooting import overshooting_roll
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 _LOG_COST_EPS = math.log(1e-6)
@@ -181,13 +181,13 @@ class LatentModel(nn.Module):
         in LAMBDA): the same value, the prior pulled toward the posterior more than the posterior toward the prior,
         so that what a frame shows is kept in the belief against the KL (0.5 halves the plain KL's gradient)
     :param overshooting_depth: 1 (the thesis's): z1's KL is to its one-step prior; ``D >= 2`` adds the mean over
-        ``d = 2 .. D`` of the KL to its prior rolled ``d`` steps open-loop (``overshooting_kl``, PlaNet's latent
+        ``d = 2 .. D`` of the KL to its prior rolled ``d`` steps open-loop (``overshooting_roll``, PlaNet's latent
         overshooting), so that the belief must hold what the next D frames will show; D is at most a window's
         transitions
     :param reward_overshooting_weight: 0 (the thesis's) or the weight of the reward's Gaussian likelihood on the
         transitions rolled open-loop ``d = 1 .. D`` steps by the overshooting (mean over d of each depth's sum over the
         window's starts, mean over the batch), so that the belief must hold what the rewards of the next D steps
-        depend on, such as where the goal went (``overshooting_kl``); needs ``overshooting_depth >= 2``
+        depend on, such as where the goal went (``overshooting_roll``); needs ``overshooting_depth >= 2``
     :param encoder_class: the encoder in place of the built-in one (None): ``encoder_class(observation_shape,
         feature_dim, **encoder_kwargs)`` must map observations (N, *observation_shape) to (N, feature_dim) or
         (N, feature_dim, 1, 1), checked on two zero observations here. It keeps its own initialisation
@@ -558,7 +558,7 @@ class LatentModel(nn.Module):
         rolled_transitions: list[Tensor] = []
         if self.overshooting_depth > 1:
             z1 = z[..., : self.z1_dim] if self.reward_overshooting_weight > 0 else None
-            terms["overshooting_kl"], rolled_transitions = overshooting_kl(
+            terms["overshooting_kl"], rolled_transitions = overshooting_roll(
                 self.z1_prior, self.z2_transition, z[..., self.z1_dim :], actions, z1_mean, z1_std, self.overshooting_depth, z1
             )
 
@@ -607,13 +607,14 @@ class LatentModel(nn.Module):
         :param rewards: (B, T) reward of transition t -> t+1; the roll's depth-d transition from t is t+d-1 -> t+d
         :param terminated: (B, T)
         """
-        per_depth = []
-        for rolled, transitions in enumerate(rolled_transitions):
-            target = slice(rolled, rolled + transitions.shape[1])
-            mean, std = self.reward_decoder(transitions)
-            nll = gaussian_nll(rewards[:, target], mean.squeeze(-1), std.squeeze(-1))
-            per_depth.append((nll * (1.0 - terminated[:, target])).sum(dim=1).mean())
-        return torch.stack(per_depth).mean()
+        # One decoder pass over every depth's transitions, side by side along the starts: at depth 16 (cpu_pixels32's
+        # sizes, windows of 20) the eager loss and its backward dispatch 4,329 ops instead of 5,433 with a pass per depth
+        starts = [transitions.shape[1] for transitions in rolled_transitions]
+        targets = [slice(rolled, rolled + count) for rolled, count in enumerate(starts)]
+        mean, std = self.reward_decoder(torch.cat(rolled_transitions, dim=1))
+        nll = gaussian_nll(torch.cat([rewards[:, target] for target in targets], dim=1), mean.squeeze(-1), std.squeeze(-1))
+        masked = nll * (1.0 - torch.cat([terminated[:, target] for target in targets], dim=1))
+        return torch.stack([part.sum(dim=1).mean() for part in masked.split(starts, dim=1)]).mean()
 
     def sample_latents(self, observations: Tensor, actions: Tensor, start: LatentStart | None = None) -> Tensor:
         """

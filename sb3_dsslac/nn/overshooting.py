@@ -20,7 +20,7 @@ from torch import Tensor, nn
 from sb3_dsslac.nn.gaussian import gaussian_kl
 
 
-def overshooting_kl(
+def overshooting_roll(
     z1_prior: nn.Module,
     z2_transition: nn.Module,
     z2: Tensor,
