@@ -109,8 +109,9 @@ def test_pretraining_runs_once_across_resumed_learns(monkeypatch) -> None:
 def test_warmup_actions_advance_the_training_filter() -> None:
     model = small_model(HazardPointEnv(), learning_starts=1_000)
     model.learn(7)
-    z2, previous_action = model._last_filter_state
+    z2, previous_action, memory = model._last_filter_state
     assert z2.shape == (1, SMALL_POLICY["z2_dim"]) and th.count_nonzero(z2) > 0
+    assert memory.shape == (1, 0)  # no actor-critic memory by default
     # The filter's previous action is the random action the buffer stored for the last step
     record = model.replay_buffer
     assert model._last_episode_starts.tolist() == [False]
