@@ -9,6 +9,7 @@ from sb3_dsslac import DSSLAC
 from sb3_dsslac.nn.memory import BeliefMemory
 from tests.synthetic_envs import HazardPointEnv
 from tests.test_dsslac import SMALL, SMALL_POLICY, small_model
+from tests.test_previous_action_input import record_inputs
 
 MEMORY = 8
 WITH_MEMORY = {**SMALL_POLICY, "actor_critic_memory": MEMORY}
@@ -17,13 +18,6 @@ WITH_MEMORY = {**SMALL_POLICY, "actor_critic_memory": MEMORY}
 def model_with_memory(**overrides) -> DSSLAC:
     transitions = SMALL["sequence_length"] - 1
     return small_model(HazardPointEnv(), policy_kwargs=WITH_MEMORY, actor_critic_transitions=transitions, **overrides)
-
-
-def record_inputs(module: th.nn.Module) -> list[tuple[th.Tensor, ...]]:
-    """The positional inputs of every later forward call of ``module``."""
-    seen: list[tuple[th.Tensor, ...]] = []
-    module.register_forward_pre_hook(lambda _module, args: seen.append(tuple(arg.detach().clone() for arg in args)))
-    return seen
 
 
 def test_unroll_is_the_step_repeated_from_zero() -> None:
