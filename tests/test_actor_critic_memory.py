@@ -24,10 +24,11 @@ def test_unroll_is_the_step_repeated_from_zero() -> None:
     th.manual_seed(0)
     memory = BeliefMemory(z_dim=5, action_dim=2, memory_dim=MEMORY)
     z, actions = th.randn(3, 4, 5), th.randn(3, 4, 2)
+    unrolled = memory.unroll(z, actions)
     state = th.zeros(3, MEMORY)
     for step in range(4):
         state = memory(z[:, step], actions[:, step], state)
-        th.testing.assert_close(memory.unroll(z, actions)[:, step], state)
+        th.testing.assert_close(unrolled[:, step], state)
 
 
 def test_the_networks_take_the_belief_and_the_memory_and_the_reward_critic_trains_it() -> None:

@@ -420,9 +420,10 @@ class LatentPolicy(BasePolicy):
             check_observations_finite(
                 obs_tensor.cpu().numpy(), lambda row: f"predict()'s observation of env {row} of {n_envs}"
             )
-        z2_prev, action_prev, memory_prev = self.initial_state(n_envs)
-        starts = th.ones(n_envs, dtype=th.bool, device=self.device)
-        if state is not None:
+        if state is None:
+            z2_prev, action_prev, memory_prev = self.initial_state(n_envs)
+            starts = th.ones(n_envs, dtype=th.bool, device=self.device)
+        else:
             if not (len(state) == 3 or (len(state) == 2 and self.memory is None)):
                 raise ValueError(
                     f"predict()'s state is the (z2, previous action, memory) that its last call returned, got {len(state)} "
@@ -430,9 +431,8 @@ class LatentPolicy(BasePolicy):
                 )
             z2_prev = th.as_tensor(state[0], dtype=th.float32, device=self.device).reshape(n_envs, self.z2_dim)
             action_prev = th.as_tensor(state[1], dtype=th.float32, device=self.device).reshape(n_envs, -1)
-            if len(state) == 3:
-                memory_prev = th.as_tensor(state[2], dtype=th.float32, device=self.device)
-                memory_prev = memory_prev.reshape(n_envs, self.actor_critic_memory)
+            memory = state[2] if len(state) == 3 else np.zeros((n_envs, 0), dtype=np.float32)
+            memory_prev = th.as_tensor(memory, dtype=th.float32, device=self.device).reshape(n_envs, self.actor_critic_memory)
             flags = np.zeros(n_envs, dtype=bool) if episode_start is None else np.asarray(episode_start, dtype=bool)
             starts = th.as_tensor(flags.reshape(n_envs), device=self.device)
         with th.inference_mode():
