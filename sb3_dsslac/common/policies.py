@@ -75,6 +75,8 @@ class LatentPolicy(BasePolicy):
     :param latent_reward_overshooting: the weight of the reward likelihood on the overshooting's open-loop rolls
         (``LatentModel``'s ``reward_overshooting_weight``): 0, the thesis's, none; positive needs ``latent_overshooting
         >= 2``. The reward of each rolled step depends on where the goal is, seen or not
+    :param latent_overshooting_stride: roll from every start of a window (1) or from every s-th only
+        (``LatentModel``'s ``overshooting_stride``): as deep, at about 1/s of the rows
     :param latent_recurrence: how z2 follows from the previous step: "gaussian" (the thesis's: a Gaussian MLP of
         ``[z1_{t+1}, z2_t, a_t]``, noise at every step) or "gru" (a deterministic GRU state, as in an RSSM:
         ``RecurrentLatentModel``), which can hold what left the view
@@ -131,6 +133,7 @@ class LatentPolicy(BasePolicy):
         latent_kl_balance: float | None = None,
         latent_overshooting: int = 1,
         latent_reward_overshooting: float = 0.0,
+        latent_overshooting_stride: int = 1,
         latent_recurrence: str = "gaussian",
         latent_learning_rate: float = 1e-4,
         previous_action_input: bool = False,
@@ -172,6 +175,7 @@ class LatentPolicy(BasePolicy):
         self.latent_kl_balance = latent_kl_balance
         self.latent_overshooting = latent_overshooting
         self.latent_reward_overshooting = latent_reward_overshooting
+        self.latent_overshooting_stride = latent_overshooting_stride
         if latent_recurrence not in LATENT_MODELS:
             raise ValueError(f"latent_recurrence must be one of {sorted(LATENT_MODELS)}, got {latent_recurrence!r}")
         self.latent_recurrence = latent_recurrence
@@ -211,6 +215,7 @@ class LatentPolicy(BasePolicy):
             kl_balance=self.latent_kl_balance,
             overshooting_depth=self.latent_overshooting,
             reward_overshooting_weight=self.latent_reward_overshooting,
+            overshooting_stride=self.latent_overshooting_stride,
         )
         state_dim = self.latent.z_dim + (self.action_dim if self.previous_action_input else 0) + self.actor_critic_memory
         self.memory = None
@@ -267,6 +272,7 @@ class LatentPolicy(BasePolicy):
                 latent_kl_balance=self.latent_kl_balance,
                 latent_overshooting=self.latent_overshooting,
                 latent_reward_overshooting=self.latent_reward_overshooting,
+                latent_overshooting_stride=self.latent_overshooting_stride,
                 latent_recurrence=self.latent_recurrence,
                 latent_learning_rate=self.latent_learning_rate,
                 previous_action_input=self.previous_action_input,

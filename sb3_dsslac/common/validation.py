@@ -162,6 +162,7 @@ RANGES: dict[str, Check] = {
     "latent_kl_balance": _numbers(0, 1),
     "latent_overshooting": _AT_LEAST_ONE,
     "latent_reward_overshooting": _NON_NEGATIVE,
+    "latent_overshooting_stride": _AT_LEAST_ONE,
     "latent_recurrence": _words(*LATENT_MODELS),
     "actor_critic_memory": _NON_NEGATIVE,
 }
@@ -252,7 +253,8 @@ def check_related_arguments(arguments: Mapping[str, Any]) -> None:
     one fewer with the policy's ``previous_action_input`` or ``actor_critic_memory``: a window's first frame has no
     previous action in it),
     ``stored_beliefs`` (a burn-in to start), ``belief_refresh_interval`` (stored beliefs), the policy's
-    ``latent_overshooting`` (a roll inside the window) and ``latent_reward_overshooting`` (on such rolls), and
+    ``latent_overshooting`` (a roll inside the window), ``latent_reward_overshooting`` and ``latent_overshooting_stride``
+    (on such rolls), and
     ``cost_target``.
     """
     transitions, length = arguments["actor_critic_transitions"], arguments["sequence_length"]
@@ -286,6 +288,12 @@ def check_related_arguments(arguments: Mapping[str, Any]) -> None:
         raise ValueError(
             f"policy_kwargs latent_reward_overshooting={reward_weight} weighs the reward on the latent overshooting's "
             f"open-loop rolls: it needs latent_overshooting >= 2, got {depth}"
+        )
+    stride = policy_kwargs.get("latent_overshooting_stride", 1)
+    if isinstance(stride, int) and stride > 1 and isinstance(depth, int) and depth < 2:
+        raise ValueError(
+            f"policy_kwargs latent_overshooting_stride={stride} picks the starts of the latent overshooting's open-loop "
+            f"rolls: it needs latent_overshooting >= 2, got {depth}"
         )
     target, limit = arguments["cost_target"], arguments["cost_limit"]
     if target is not None and not 0.0 <= target <= limit:

@@ -188,6 +188,8 @@ class LatentModel(nn.Module):
         transitions rolled open-loop ``d = 1 .. D`` steps by the overshooting (mean over d of each depth's sum over the
         window's starts, mean over the batch), so that the belief must hold what the rewards of the next D steps
         depend on, such as where the goal went (``overshooting_roll``); needs ``overshooting_depth >= 2``
+    :param overshooting_stride: 1 rolls from every start of a window; ``s`` from every s-th start only (t = 0, s, ..),
+        as deep at about 1/s of the rows (``overshooting_roll``)
     :param encoder_class: the encoder in place of the built-in one (None): ``encoder_class(observation_shape,
         feature_dim, **encoder_kwargs)`` must map observations (N, *observation_shape) to (N, feature_dim) or
         (N, feature_dim, 1, 1), checked on two zero observations here. It keeps its own initialisation
@@ -220,6 +222,7 @@ class LatentModel(nn.Module):
         kl_balance: float | None = None,
         overshooting_depth: int = 1,
         reward_overshooting_weight: float = 0.0,
+        overshooting_stride: int = 1,
         encoder_class: type[nn.Module] | None = None,
         encoder_kwargs: dict[str, Any] | None = None,
         decoder_class: type[nn.Module] | None = None,
@@ -238,6 +241,9 @@ class LatentModel(nn.Module):
                 f"weighs), got {reward_overshooting_weight} with overshooting_depth={overshooting_depth}"
             )
         self.reward_overshooting_weight = reward_overshooting_weight
+        if overshooting_stride < 1:
+            raise ValueError(f"overshooting_stride must be at least 1 (1: a roll from every start), got {overshooting_stride}")
+        self.overshooting_stride = overshooting_stride
         self.hidden_units = tuple(hidden_units)
         self.image_channels = tuple(int(width) for width in image_channels)
         if len(self.image_channels) != 4 or min(self.image_channels) < 1:
@@ -559,7 +565,15 @@ class LatentModel(nn.Module):
         if self.overshooting_depth > 1:
             z1 = z[..., : self.z1_dim] if self.reward_overshooting_weight > 0 else None
             terms["overshooting_kl"], rolled_transitions = overshooting_roll(
-                self.z1_prior, self.z2_transition, z[..., self.z1_dim :], actions, z1_mean, z1_std, self.overshooting_depth, z1
+                self.z1_prior,
+                self.z2_transition,
+                z[..., self.z1_dim :],
+                actions,
+                z1_mean,
+                z1_std,
+                self.overshooting_depth,
+                z1,
+                self.overshooting_stride,
             )
 
         reconstruction = self.decode(z)
@@ -603,14 +617,16 @@ class LatentModel(nn.Module):
         Mean over the depths of the reward decoder's NLL of the rewards, summed over the starts (terminal transitions
         masked), mean over the batch.
 
-        :param rolled_transitions: per depth d = 1 .. D, (B, T-d+1, transition_dim) rolled from every start t
+        :param rolled_transitions: per depth d = 1 .. D, (B, starts, transition_dim) rolled from the starts t = 0, s, ..
+            <= T-d (``overshooting_stride`` s)
         :param rewards: (B, T) reward of transition t -> t+1; the roll's depth-d transition from t is t+d-1 -> t+d
         :param terminated: (B, T)
         """
         # One decoder pass over every depth's transitions, side by side along the starts: at depth 16 (cpu_pixels32's
         # sizes, windows of 20) the eager loss and its backward dispatch 4,329 ops instead of 5,433 with a pass per depth
         starts = [transitions.shape[1] for transitions in rolled_transitions]
-        targets = [slice(rolled, rolled + count) for rolled, count in enumerate(starts)]
+        stride = self.overshooting_stride
+        targets = [slice(rolled, rolled + stride * count, stride) for rolled, count in enumerate(starts)]
         mean, std = self.reward_decoder(torch.cat(rolled_transitions, dim=1))
         nll = gaussian_nll(torch.cat([rewards[:, target] for target in targets], dim=1), mean.squeeze(-1), std.squeeze(-1))
         masked = nll * (1.0 - torch.cat([terminated[:, target] for target in targets], dim=1))

@@ -29,11 +29,13 @@ def overshooting_roll(
     posterior_std: Tensor,
     depth: int,
     z1: Tensor | None = None,
+    stride: int = 1,
 ) -> tuple[Tensor, list[Tensor]]:
     """
     Mean over ``d = 2 .. depth`` of ``KL(sg(q(z1_{t+d})) || p_d(z1_{t+d} | z2_t, a_t .. a_{t+d-1}))``, each summed over
-    the window's starts ``t`` and z1, mean over the batch: the prior is rolled ``d`` steps from the posterior's ``z2_t``
-    with sampled z1s (z2's transition sampled too where it is a Gaussian) and the posterior is held fixed, as in PlaNet.
+    the window's starts ``t = 0, s, 2s, ..`` (stride ``s``) and z1, mean over the batch: the prior is rolled ``d`` steps
+    from the posterior's ``z2_t`` with sampled z1s (z2's transition sampled too where it is a Gaussian) and the
+    posterior is held fixed, as in PlaNet.
 
     :param z1_prior: ``p(z1_{t+1} | z2_t, a_t)``, ``(z2, action) -> (mean, std)``
     :param z2_transition: ``(z1_{t+1}, z2_t, a_t) -> (mean, std)`` of z2 (a GRU's std is zero)
@@ -46,21 +48,26 @@ def overshooting_roll(
         step after the KL's draws), or None
     :return: the scalar term, and with ``z1`` the rolled transitions of ``d = 1 .. depth``: ``[z_{t+d-1}, a_{t+d-1},
         z_{t+d}]`` (B, T-d+1, 2 (Z1 + Z2) + A) with ``z = [z1, z2]`` rolled open-loop from the posterior's ``z_t`` (itself
-        at d = 1), for every start t = 0 .. T-d; without ``z1`` an empty list
+        at d = 1), for every start t = 0, s, .. <= T-d; without ``z1`` an empty list
+    :param stride: roll from every ``stride``-th start only. A deep roll's cost is its rows, about depth x starts: at
+        depth 16 over windows of 20, stride 2 rolls 104 rows where every start rolls 200 (8-step rolls from every start:
+        132), and each roll still reaches as far (``benchmarks/results/overshooting_speed.md``)
     """
     steps = actions.shape[1]
     if not 2 <= depth <= steps:
         raise ValueError(f"overshooting depth must be in [2, {steps}] (the window's transitions), got {depth}")
-    state = z2[:, :-1]  # (B, T, Z2): the roll from every start t = 0 .. T-1
-    previous = None if z1 is None else torch.cat([z1[:, :-1], state], dim=-1)  # z_{t+rolled} of every start
+    if stride < 1:
+        raise ValueError(f"overshooting stride must be at least 1 (1: a roll from every start), got {stride}")
+    state = z2[:, :-1:stride]  # (B, starts, Z2): the roll from every start t = 0, s, .. <= T-1
+    previous = None if z1 is None else torch.cat([z1[:, :-1:stride], state], dim=-1)  # z_{t+rolled} of every start
     terms, transitions = [], []
     for rolled in range(depth):
-        starts = steps - rolled  # the starts whose roll stays inside the window
+        starts = (steps - 1 - rolled) // stride + 1  # the starts whose roll stays inside the window
         state = state[:, :starts]
-        action = actions[:, rolled : rolled + starts]
+        action = actions[:, rolled : rolled + stride * starts : stride]
         prior_mean, prior_std = z1_prior(state, action)  # p(z1_{t+rolled+1} | ...), rolled steps open-loop
         if rolled >= 1:
-            target = slice(rolled + 1, rolled + 1 + starts)
+            target = slice(rolled + 1, rolled + 1 + stride * starts, stride)
             kl = gaussian_kl(posterior_mean[:, target].detach(), posterior_std[:, target].detach(), prior_mean, prior_std)
             terms.append(kl.sum(dim=(1, 2)).mean())
         if rolled + 1 < depth or previous is not None:
