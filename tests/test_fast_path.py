@@ -190,6 +190,7 @@ LATENT_STATISTICS = {
                 "latent_recurrence": "gru",
                 "latent_overshooting": 2,
                 "latent_reward_overshooting": 1.0,
+                "latent_overshooting_stride": 2,
                 "actor_critic_memory": 8,
             },
             "actor_critic_transitions": 2,
@@ -203,8 +204,8 @@ def test_compiled_update_matches_eager(monkeypatch, recurrent_memory: dict) -> N
     # Minutes on 2 cores with a cold Inductor cache (17 s with a warm one): torch.compile builds the whole gradient step
     # and the burst's last actor-critic step with Inductor's C++ kernels, whatever the networks' sizes. The cpu_pixels
     # presets' narrow first layer, channels-last (as on an x86 CPU), whatever this CPU; and the same with the GRU latent
-    # and a burn-in from stored beliefs and latent overshooting of z1 and the reward (cpu_pixels32_gru_stored's memory and
-    # its objectives, with an actor-critic memory over two learned transitions)
+    # and a burn-in from stored beliefs and latent overshooting of z1 and the reward from every second start
+    # (cpu_pixels32_gru_stored's memory and its objectives, with an actor-critic memory over two learned transitions)
     monkeypatch.setattr(latent_module, "channels_last_is_faster", lambda widths, device: True)
     keywords = dict(recurrent_memory)
     policy_kwargs = {"image_channels": (8, 8, 16, 16), **keywords.pop("policy_kwargs", {})}

@@ -49,9 +49,10 @@ def overshooting_roll(
     :return: the scalar term, and with ``z1`` the rolled transitions of ``d = 1 .. depth``: ``[z_{t+d-1}, a_{t+d-1},
         z_{t+d}]`` (B, T-d+1, 2 (Z1 + Z2) + A) with ``z = [z1, z2]`` rolled open-loop from the posterior's ``z_t`` (itself
         at d = 1), for every start t = 0, s, .. <= T-d; without ``z1`` an empty list
-    :param stride: roll from every ``stride``-th start only. A deep roll's cost is its rows, about depth x starts: at
-        depth 16 over windows of 20, stride 2 rolls 104 rows where every start rolls 200 (8-step rolls from every start:
-        132), and each roll still reaches as far (``benchmarks/results/overshooting_speed.md``)
+    :param stride: roll from every ``stride``-th start only. A roll's cost grows with its rows, about depth x starts: at
+        depth 16 over windows of 20, stride 2 rolls 104 rows where every start rolls 200 (8-step rolls from every
+        start: 132), as far. Measured in one run, the update with the reward on such rolls costs 1.82x
+        ``cpu_pixels32_pid``'s, with 8-step rolls from every start 1.67x (``benchmarks/results/overshooting_speed.md``)
     """
     steps = actions.shape[1]
     if not 2 <= depth <= steps:
