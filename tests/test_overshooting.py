@@ -1,13 +1,11 @@
 """Latent overshooting (``latent_overshooting``): z1's KL to its prior rolled open-loop several steps, and the reward on
 those rolls (``latent_reward_overshooting``)."""
 
-import math
-
 import pytest
 import torch as th
 from stable_baselines3.common.logger import configure
 
-from sb3_dsslac.nn.latent import LatentModel, gaussian_kl
+from sb3_dsslac.nn.latent import LatentModel, gaussian_kl, gaussian_nll
 from sb3_dsslac.nn.overshooting import overshooting_roll
 from sb3_dsslac.nn.recurrent_latent import RecurrentLatentModel
 from tests.synthetic_envs import HazardPointEnv
@@ -147,8 +145,8 @@ def test_the_rolled_reward_of_a_strided_roll_is_scored_against_the_rewards_its_s
         total = 0.0
         for index, start in enumerate(range(0, STEPS - d + 1, 2)):
             reward_mean, reward_std = latent.reward_decoder(rolled[:, index])
-            nll = 0.5 * ((rewards[:, start + d - 1] - reward_mean[:, 0]) / reward_std[:, 0]) ** 2 + th.log(reward_std[:, 0])
-            total = total + (nll + 0.5 * math.log(2 * math.pi)) * (1 - terminated[:, start + d - 1])
+            nll = gaussian_nll(rewards[:, start + d - 1], reward_mean[:, 0], reward_std[:, 0])
+            total = total + nll * (1 - terminated[:, start + d - 1])
         per_depth.append(total.mean())
     expected = th.stack(per_depth).mean()
     th.testing.assert_close(latent._rolled_reward_nll(transitions, rewards, terminated), expected, rtol=1e-5, atol=1e-5)

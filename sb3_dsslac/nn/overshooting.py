@@ -46,13 +46,14 @@ def overshooting_roll(
     :param depth: the longest open-loop roll, 2 <= depth <= T
     :param z1: (B, T+1, Z1) the posterior rollout's z1 samples to also return the rolled transitions (one more sampled
         step after the KL's draws), or None
-    :return: the scalar term, and with ``z1`` the rolled transitions of ``d = 1 .. depth``: ``[z_{t+d-1}, a_{t+d-1},
-        z_{t+d}]`` (B, T-d+1, 2 (Z1 + Z2) + A) with ``z = [z1, z2]`` rolled open-loop from the posterior's ``z_t`` (itself
-        at d = 1), for every start t = 0, s, .. <= T-d; without ``z1`` an empty list
     :param stride: roll from every ``stride``-th start only. A roll's cost grows with its rows, about depth x starts: at
         depth 16 over windows of 20, stride 2 rolls 104 rows where every start rolls 200 (8-step rolls from every
-        start: 132), as far. Measured in one run, the update with the reward on such rolls costs 1.82x
-        ``cpu_pixels32_pid``'s, with 8-step rolls from every start 1.67x (``benchmarks/results/overshooting_speed.md``)
+        start: 132), as far. Measured in one run beside two learning runs, the update with the reward on such rolls
+        costs 1.82x ``cpu_pixels32_pid``'s, with 8-step rolls from every start 1.67x; 1.43x with the cores to itself
+        (``benchmarks/results/overshooting_speed.md``)
+    :return: the scalar term, and with ``z1`` the rolled transitions of ``d = 1 .. depth``: ``[z_{t+d-1}, a_{t+d-1},
+        z_{t+d}]`` (B, starts, 2 (Z1 + Z2) + A) with ``z = [z1, z2]`` rolled open-loop from the posterior's ``z_t`` (itself
+        at d = 1), for every start t = 0, s, .. <= T-d; without ``z1`` an empty list
     """
     steps = actions.shape[1]
     if not 2 <= depth <= steps:
